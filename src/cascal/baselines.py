@@ -1,0 +1,43 @@
+"""Alternative 2 of the paper: offset lookup tables with linear interpolation.
+
+A table stores the correction offset ``reference - reading`` at its knots and interpolates
+it linearly; beyond the table's ends the offset is held constant, as controllers'
+error-compensation tables do (and as the identity prior mean suggests). Alternative 1 (a
+homoscedastic GP) is :func:`cascal.fit_gp` with a learned scalar noise; see ``cascade``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .validation import as_positions, check_pair
+
+__all__ = ["OffsetTable", "fit_table"]
+
+
+@dataclass(frozen=True, slots=True)
+class OffsetTable:
+    """Lookup table of correction offsets.
+
+    Attributes:
+        knots: Readings at the table entries, strictly increasing, shape (k,).
+        offsets: Correction ``reference - reading`` at each knot, shape (k,), same unit.
+    """
+
+    knots: np.ndarray
+    offsets: np.ndarray
+
+    def __call__(self, readings: object) -> np.ndarray:
+        """Corrected positions ``readings + offset(readings)``, shape (m,)."""
+        r = as_positions(readings, "readings")
+        return r + np.interp(r, self.knots, self.offsets)
+
+
+def fit_table(x: object, y: object, names: tuple[str, str] = ("x", "y")) -> OffsetTable:
+    """Table mapping readings ``x`` (n,) to references ``y`` (n,); repeats are averaged."""
+    xa, ya = check_pair(x, y, names)
+    knots, inverse = np.unique(xa, return_inverse=True)
+    offsets = np.bincount(inverse, weights=ya - xa) / np.bincount(inverse)
+    return OffsetTable(knots, offsets)

@@ -1,0 +1,207 @@
+"""The cascade: reference -> test bed -> ... -> device, each stage a fit on the previous one.
+
+Stages are given from the reference end. Stage 0 maps test-bed readings to reference
+readings. Stage k maps its sensor's readings to corrected readings of the sensor above it,
+whose correction comes from stage k - 1 evaluated at the upper sensor's readings:
+
+* ``bayes`` (Algorithm 1): targets are stage k-1's posterior mean and their noise is its
+  FULL posterior covariance (:class:`~cascal.noise.Dense`) plus a learned scalar.
+* ``homoscedastic`` (Alternative 1): the same targets with a learned scalar noise only.
+* ``lut`` (Alternative 2): offset lookup tables, one per stage, no uncertainty.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .baselines import OffsetTable, fit_table
+from .errors import CascalError, InputError
+from .gp import FittedGP, fit_gp
+from .kernels import Kernel
+from .noise import Dense, Noise, as_noise
+from .validation import as_positions, check_increasing, check_pair
+
+__all__ = ["Cascade", "FittedCascade", "METHODS", "Stage"]
+
+METHODS = ("bayes", "homoscedastic", "lut")
+
+
+@dataclass(frozen=True, slots=True)
+class Stage:
+    """Aligned readings of one stage.
+
+    Attributes:
+        x: Readings of the sensor being calibrated, shape (n,).
+        y: Readings of the more accurate sensor it was aligned with, shape (n,).
+        noise: Known variances of ``y`` (number or (n,)), e.g. from repeated readings.
+        name: Used in messages, e.g. ``"testbed"``.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    noise: float | np.ndarray | None = None
+    name: str = "stage"
+
+
+@dataclass(frozen=True, slots=True)
+class FittedCascade:
+    """A fitted chain: one model per stage, the last maps device readings to positions.
+
+    Attributes:
+        method: ``bayes``, ``homoscedastic`` or ``lut``.
+        models: Per stage, a :class:`~cascal.gp.FittedGP` or an :class:`OffsetTable`.
+        stages: The data each model was fitted on (targets after propagation).
+    """
+
+    method: str
+    models: tuple[FittedGP | OffsetTable, ...]
+    stages: tuple[Stage, ...] = field(repr=False)
+
+    @property
+    def device(self) -> FittedGP | OffsetTable:
+        """The last stage's model: device reading -> corrected position."""
+        return self.models[-1]
+
+    @property
+    def calibrated_range(self) -> tuple[float, float]:
+        """Smallest and largest device reading the last stage was fitted on."""
+        x = self.stages[-1].x
+        return float(x.min()), float(x.max())
+
+    def correct(
+        self, readings: object, return_std: bool = False
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """Corrected positions for device ``readings`` (m,), and their standard uncertainty.
+
+        Raises:
+            CascalError: ``return_std`` with the ``lut`` method, which carries no uncertainty.
+        """
+        r = as_positions(readings, "readings")
+        model = self.device
+        if isinstance(model, OffsetTable):
+            if return_std:
+                raise CascalError(
+                    "method 'lut' (lookup tables) gives no uncertainty; use 'bayes' or "
+                    "'homoscedastic' for a standard uncertainty of each corrected reading"
+                )
+            return model(r)
+        return model.predict(r, return_std=return_std)
+
+
+class Cascade:
+    """A calibration chain from the reference end to the device.
+
+    Args:
+        stages: ``(x, y)`` pairs or :class:`Stage` values, reference end first; stage 0 is
+            (test-bed readings, reference readings), the last is (device readings, readings
+            of the sensor above it).
+        method: ``bayes`` (Algorithm 1), ``homoscedastic`` (Alternative 1) or ``lut``.
+        kernel: Kernel name or Kernel, for every GP stage.
+        mean: Prior mean of every GP stage (default identity).
+        n_restarts: L-BFGS-B starts per stage.
+        seed: Seed of the whole fit; each stage gets its own child stream.
+        period: Period of a ``periodic`` kernel.
+        check_range: Refuse a stage whose upper-sensor readings leave the range of the
+            stage above (the reference could not confirm them).
+    """
+
+    def __init__(
+        self,
+        stages: Sequence[Stage | tuple[object, object]],
+        method: str = "bayes",
+        *,
+        kernel: str | Kernel = "se",
+        mean: str | float = "identity",
+        n_restarts: int = 5,
+        seed: int | None = 0,
+        period: float | None = None,
+        check_range: bool = False,
+    ) -> None:
+        if method not in METHODS:
+            raise InputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+        if len(stages) < 1:
+            raise InputError("stages: expected at least one (x, y) pair")
+        n = len(stages)
+        self.stages = tuple(_as_stage(s, k, n) for k, s in enumerate(stages))
+        self.method = method
+        self.kernel, self.mean, self.period = kernel, mean, period
+        self.n_restarts, self.seed, self.check_range = n_restarts, seed, check_range
+        if check_range:
+            for upper, lower in zip(self.stages, self.stages[1:], strict=False):
+                _check_inside(lower, upper)
+
+    def fit(self) -> FittedCascade:
+        """Fit every stage from the reference end down; returns a :class:`FittedCascade`."""
+        children = np.random.SeedSequence(self.seed).spawn(len(self.stages))
+        rngs = [np.random.default_rng(c) for c in children]
+        if self.method == "lut":
+            return self._fit_tables()
+        models: list[FittedGP] = []
+        used: list[Stage] = []
+        for k, stage in enumerate(self.stages):
+            if k == 0:
+                targets, noise = stage.y, stage.noise
+            else:
+                post = models[-1].posterior(stage.y)
+                targets = post.mean
+                noise = _propagated(post.cov, stage) if self.method == "bayes" else stage.noise
+            gp = fit_gp(
+                stage.x,
+                targets,
+                kernel=self.kernel,
+                mean=self.mean,
+                noise=noise,
+                learn_noise=True,
+                n_restarts=self.n_restarts,
+                seed=rngs[k],
+                period=self.period,
+                names=(f"{stage.name} x", f"{stage.name} y"),
+            )
+            models.append(gp)
+            used.append(Stage(stage.x, targets, stage.noise, stage.name))
+        return FittedCascade(self.method, tuple(models), tuple(used))
+
+    def _fit_tables(self) -> FittedCascade:
+        tables: list[OffsetTable] = []
+        used: list[Stage] = []
+        for k, stage in enumerate(self.stages):
+            targets = stage.y if k == 0 else tables[-1](stage.y)
+            tables.append(fit_table(stage.x, targets, (f"{stage.name} x", f"{stage.name} y")))
+            used.append(Stage(stage.x, targets, stage.noise, stage.name))
+        return FittedCascade("lut", tuple(tables), tuple(used))
+
+
+def _propagated(cov: np.ndarray, stage: Stage) -> Noise:
+    noise = Dense(cov)
+    own = as_noise(stage.noise, len(stage.x))
+    return noise if own is None else noise + own
+
+
+def _as_stage(s: Stage | tuple[object, object], k: int, n: int) -> Stage:
+    name = "testbed" if k == 0 else "device" if k == n - 1 else f"stage {k}"
+    if isinstance(s, Stage):
+        x, y, noise, name = s.x, s.y, s.noise, s.name
+    else:
+        try:
+            x, y = s
+        except (TypeError, ValueError):
+            raise InputError(f"stages[{k}]: expected an (x, y) pair or a Stage") from None
+        noise = None
+    xa, ya = check_pair(x, y, (f"{name} x", f"{name} y"))
+    check_increasing(xa, ya, (f"{name} x", f"{name} y"))
+    as_noise(noise, xa.size)
+    return Stage(xa, ya, noise, name)
+
+
+def _check_inside(lower: Stage, upper: Stage) -> None:
+    lo, hi = float(upper.x.min()), float(upper.x.max())
+    out = np.flatnonzero((lower.y < lo) | (lower.y > hi))
+    if out.size:
+        i = out[0]
+        raise InputError(
+            f"{lower.name} y: reading {lower.y[i]!r} (index {i}) lies outside the range "
+            f"[{lo!r}, {hi!r}] calibrated by {upper.name}; {out.size} reading(s) outside"
+        )

@@ -1,0 +1,285 @@
+"""Covariance kernels on 1-D positions, their log-space hyperparameters and gradients.
+
+Every kernel is an immutable value. ``theta`` holds the natural logarithms of its
+hyperparameters; ``with_theta`` returns a new kernel. ``gradient`` returns ``K`` and
+``dK/dtheta`` (the derivative with respect to the log-hyperparameters). Kernels compose
+with ``+`` and ``*``; a number becomes a :class:`Constant`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "Kernel",
+    "SquaredExp",
+    "Matern32",
+    "Matern52",
+    "Periodic",
+    "Constant",
+    "Sum",
+    "Product",
+    "make_kernel",
+    "KERNEL_NAMES",
+]
+
+_SQRT3 = np.sqrt(3.0)
+_SQRT5 = np.sqrt(5.0)
+
+
+def _diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.subtract.outer(np.asarray(a, dtype=float), np.asarray(b, dtype=float))
+
+
+class Kernel:
+    """Base class: subclasses define ``names``, ``theta``, ``with_theta``, ``_eval``."""
+
+    names: tuple[str, ...] = ()
+
+    @property
+    def theta(self) -> np.ndarray:
+        """Log-hyperparameters, shape (p,)."""
+        raise NotImplementedError
+
+    def with_theta(self, theta: np.ndarray) -> Kernel:
+        """A new kernel with log-hyperparameters ``theta`` (shape (p,))."""
+        raise NotImplementedError
+
+    @property
+    def n_params(self) -> int:
+        return len(self.names)
+
+    @property
+    def params(self) -> dict[str, float]:
+        """Hyperparameters by name, in natural units."""
+        return dict(zip(self.names, np.exp(self.theta).tolist(), strict=True))
+
+    def __call__(self, a: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
+        """Covariance matrix between positions ``a`` (m,) and ``b`` (n,): shape (m, n)."""
+        d = _diff(a, a if b is None else b)
+        return self._eval(d, grad=False)[0]
+
+    def diag(self, x: np.ndarray) -> np.ndarray:
+        """Prior variances k(x_i, x_i), shape (n,)."""
+        return self._eval(np.zeros(np.shape(x)), grad=False)[0]
+
+    def gradient(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """K (n, n) and dK/dtheta (p, n, n) at positions ``x`` (n,)."""
+        return self.gradient_from_diff(_diff(x, x))
+
+    def gradient_from_diff(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`gradient`, from the matrix of differences ``d`` (n, n)."""
+        K, dK = self._eval(d, grad=True)
+        return K, dK
+
+    def _eval(self, d: np.ndarray, grad: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        raise NotImplementedError
+
+    def __add__(self, other: Kernel | float) -> Sum:
+        return Sum(self, _as_kernel(other))
+
+    def __radd__(self, other: Kernel | float) -> Sum:
+        return Sum(_as_kernel(other), self)
+
+    def __mul__(self, other: Kernel | float) -> Product:
+        return Product(self, _as_kernel(other))
+
+    def __rmul__(self, other: Kernel | float) -> Product:
+        return Product(_as_kernel(other), self)
+
+
+def _as_kernel(k: Kernel | float) -> Kernel:
+    return k if isinstance(k, Kernel) else Constant(float(k))
+
+
+@dataclass(frozen=True, slots=True)
+class _Scaled(Kernel):
+    """Stationary kernel ``variance * rho(d / length_scale)``: the scale can be profiled."""
+
+    length_scale: float = 1.0
+    variance: float = 1.0
+    names = ("length_scale", "variance")  # type: ignore[misc]
+
+    def __post_init__(self) -> None:
+        for name in ("length_scale", "variance"):
+            v = getattr(self, name)
+            if not np.isfinite(v) or v <= 0:
+                raise ValueError(f"{name} must be positive and finite, got {v!r}")
+
+    @property
+    def theta(self) -> np.ndarray:
+        return np.log([self.length_scale, self.variance])
+
+    def with_theta(self, theta: np.ndarray) -> _Scaled:
+        l, v = np.exp(np.asarray(theta, dtype=float))
+        return _replace(self, length_scale=float(l), variance=float(v))
+
+    def correlation(self, d: np.ndarray, grad: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """rho (n, n) at unit variance and d rho / d log length_scale (or None)."""
+        raise NotImplementedError
+
+    def _eval(self, d: np.ndarray, grad: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        rho, drho = self.correlation(d, grad)
+        K = self.variance * rho
+        if not grad:
+            return K, None
+        return K, np.stack([self.variance * drho, K])
+
+
+def _replace(obj, **changes):
+    from dataclasses import replace
+
+    return replace(obj, **changes)
+
+
+@dataclass(frozen=True, slots=True)
+class SquaredExp(_Scaled):
+    """k(a, b) = variance * exp(-(a - b)^2 / (2 length_scale^2)); the paper's kernel."""
+
+    def correlation(self, d, grad):
+        s = (d / self.length_scale) ** 2
+        rho = np.exp(-0.5 * s)
+        return rho, (rho * s if grad else None)
+
+
+@dataclass(frozen=True, slots=True)
+class Matern32(_Scaled):
+    """Matern nu = 3/2: variance * (1 + sqrt3 r) exp(-sqrt3 r), r = |a - b| / length_scale."""
+
+    def correlation(self, d, grad):
+        r = np.abs(d) * (_SQRT3 / self.length_scale)
+        e = np.exp(-r)
+        rho = (1.0 + r) * e
+        return rho, (r * r * e if grad else None)
+
+
+@dataclass(frozen=True, slots=True)
+class Matern52(_Scaled):
+    """Matern nu = 5/2: variance * (1 + sqrt5 r + 5 r^2 / 3) exp(-sqrt5 r)."""
+
+    def correlation(self, d, grad):
+        r = np.abs(d) * (_SQRT5 / self.length_scale)
+        e = np.exp(-r)
+        rho = (1.0 + r + r * r / 3.0) * e
+        return rho, ((r * r / 3.0) * (1.0 + r) * e if grad else None)
+
+
+@dataclass(frozen=True, slots=True)
+class Periodic(_Scaled):
+    """Exp-sine-squared: variance * exp(-2 sin^2(pi (a - b) / period) / length_scale^2).
+
+    ``period`` is fixed (360 for degrees, 2*pi for radians) and not learned.
+    """
+
+    period: float = 2 * np.pi
+
+    def __post_init__(self) -> None:
+        _Scaled.__post_init__(self)
+        if not np.isfinite(self.period) or self.period <= 0:
+            raise ValueError(f"period must be positive and finite, got {self.period!r}")
+
+    def correlation(self, d, grad):
+        s = 2.0 * (np.sin(np.pi * d / self.period) / self.length_scale) ** 2
+        rho = np.exp(-s)
+        return rho, (2.0 * s * rho if grad else None)
+
+
+@dataclass(frozen=True, slots=True)
+class Constant(Kernel):
+    """k(a, b) = value: a constant offset of unknown size."""
+
+    value: float = 1.0
+    names = ("value",)  # type: ignore[misc]
+
+    @property
+    def theta(self) -> np.ndarray:
+        return np.log([self.value])
+
+    def with_theta(self, theta: np.ndarray) -> Constant:
+        return Constant(float(np.exp(theta[0])))
+
+    def _eval(self, d, grad):
+        K = np.full(np.shape(d), self.value)
+        return K, (K[None] if grad else None)
+
+
+@dataclass(frozen=True, slots=True)
+class _Binary(Kernel):
+    left: Kernel
+    right: Kernel
+    _names: tuple[str, ...] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        names = [f"k1_{n}" for n in _flat_names(self.left)]
+        names += [f"k2_{n}" for n in _flat_names(self.right)]
+        object.__setattr__(self, "_names", tuple(names))
+
+    @property
+    def names(self) -> tuple[str, ...]:  # type: ignore[override]
+        return self._names
+
+    @property
+    def theta(self) -> np.ndarray:
+        return np.concatenate([self.left.theta, self.right.theta])
+
+    def with_theta(self, theta):
+        p = self.left.n_params
+        return type(self)(self.left.with_theta(theta[:p]), self.right.with_theta(theta[p:]))
+
+
+def _flat_names(k: Kernel) -> tuple[str, ...]:
+    return k.names
+
+
+@dataclass(frozen=True, slots=True)
+class Sum(_Binary):
+    """k = left + right."""
+
+    def _eval(self, d, grad):
+        Ka, dA = self.left._eval(d, grad)
+        Kb, dB = self.right._eval(d, grad)
+        return Ka + Kb, (np.concatenate([dA, dB]) if grad else None)
+
+
+@dataclass(frozen=True, slots=True)
+class Product(_Binary):
+    """k = left * right."""
+
+    def _eval(self, d, grad):
+        Ka, dA = self.left._eval(d, grad)
+        Kb, dB = self.right._eval(d, grad)
+        if not grad:
+            return Ka * Kb, None
+        return Ka * Kb, np.concatenate([dA * Kb, Ka * dB])
+
+
+KERNEL_NAMES = ("se", "matern32", "matern52", "periodic")
+
+
+def make_kernel(
+    name: str | Kernel,
+    *,
+    length_scale: float = 1.0,
+    variance: float = 1.0,
+    period: float | None = None,
+) -> Kernel:
+    """Build a kernel from its short name (``se``, ``matern32``, ``matern52``, ``periodic``).
+
+    A :class:`Kernel` passes through unchanged. ``periodic`` needs ``period``.
+    """
+    if isinstance(name, Kernel):
+        return name
+    key = str(name).lower()
+    if key in ("se", "rbf", "squared_exp", "squaredexp"):
+        return SquaredExp(length_scale, variance)
+    if key == "matern32":
+        return Matern32(length_scale, variance)
+    if key == "matern52":
+        return Matern52(length_scale, variance)
+    if key == "periodic":
+        if period is None:
+            raise ValueError("the periodic kernel needs a period (e.g. 360 for degrees)")
+        return Periodic(length_scale, variance, period=float(period))
+    raise ValueError(f"unknown kernel {name!r}; expected one of {', '.join(KERNEL_NAMES)}")

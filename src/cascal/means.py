@@ -1,0 +1,50 @@
+"""Prior mean functions m(x) of a calibration map: identity, zero or a constant."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Mean", "make_mean"]
+
+
+@dataclass(frozen=True, slots=True)
+class Mean:
+    """m(x) = slope * x + offset. Identity (1, 0) says "the reading is right until shown otherwise"."""
+
+    slope: float = 1.0
+    offset: float = 0.0
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """Prior mean at positions ``x`` (n,), same unit, shape (n,)."""
+        x = np.asarray(x, dtype=float)
+        if self.slope == 0.0:
+            return np.full(x.shape, self.offset)
+        return self.slope * x + self.offset if self.offset else self.slope * x
+
+    @property
+    def name(self) -> str:
+        if self.slope == 1.0 and self.offset == 0.0:
+            return "identity"
+        if self.slope == 0.0:
+            return "zero" if self.offset == 0.0 else "constant"
+        return "linear"
+
+
+def make_mean(spec: str | float | Mean, y: np.ndarray | None = None) -> Mean:
+    """Mean from ``"identity"``, ``"zero"``, ``"constant"`` (mean of ``y``) or a number."""
+    if isinstance(spec, Mean):
+        return spec
+    if isinstance(spec, int | float) and not isinstance(spec, bool):
+        return Mean(0.0, float(spec))
+    key = str(spec).lower()
+    if key == "identity":
+        return Mean(1.0, 0.0)
+    if key == "zero":
+        return Mean(0.0, 0.0)
+    if key == "constant":
+        if y is None:
+            raise ValueError("mean='constant' needs the targets to take their average")
+        return Mean(0.0, float(np.mean(y)))
+    raise ValueError(f"unknown mean {spec!r}; expected 'identity', 'zero', 'constant' or a number")

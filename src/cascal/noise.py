@@ -1,0 +1,170 @@
+"""Known target-noise models: per-point variances, a dense covariance, and their sum.
+
+A learned white-noise variance is a hyperparameter of the GP, not a noise object; these
+types hold what is known before the fit (stage B of the cascade gets ``Dense(Sigma)``).
+Every type offers ``diagonal(n)`` and ``dense(n)``, and is tested against its dense matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["Noise", "Diagonal", "Dense", "NoiseSum", "as_noise"]
+
+
+class Noise:
+    """Base class of known noise covariances."""
+
+    #: True when the covariance is diagonal (no correlations between points).
+    is_diagonal: bool = True
+
+    def diagonal(self, n: int) -> np.ndarray:
+        """Variances of the n targets, shape (n,), in the target unit squared."""
+        raise NotImplementedError
+
+    def dense(self, n: int) -> np.ndarray:
+        """Full covariance, shape (n, n), in the target unit squared."""
+        raise NotImplementedError
+
+    def add_to(self, K: np.ndarray) -> np.ndarray:
+        """``K + covariance`` as a new array, K of shape (n, n)."""
+        n = len(K)
+        if self.is_diagonal:
+            out = K.copy()
+            out.flat[:: n + 1] += self.diagonal(n)
+            return out
+        return K + self.dense(n)
+
+    def __add__(self, other: Noise) -> NoiseSum:
+        return NoiseSum((self, other))
+
+
+@dataclass(frozen=True, slots=True)
+class Diagonal(Noise):
+    """Independent noise: one variance for all points (float) or one per point, shape (n,)."""
+
+    variance: float | np.ndarray = 0.0
+
+    def __post_init__(self) -> None:
+        v = np.asarray(self.variance, dtype=float)
+        if v.ndim > 1:
+            raise InputError(f"noise variance: expected a number or shape (n,), got {v.shape}")
+        if not np.all(np.isfinite(v)) or np.any(v < 0):
+            raise InputError("noise variance: expected finite values >= 0")
+        object.__setattr__(self, "variance", float(v) if v.ndim == 0 else v)
+
+    def diagonal(self, n: int) -> np.ndarray:
+        v = np.asarray(self.variance, dtype=float)
+        if v.ndim == 1 and v.shape != (n,):
+            raise InputError(f"noise variance: expected shape ({n},), got {v.shape}")
+        return np.broadcast_to(v, (n,)).copy()
+
+    def dense(self, n: int) -> np.ndarray:
+        return np.diag(self.diagonal(n))
+
+
+@dataclass(frozen=True, slots=True)
+class Dense(Noise):
+    """Correlated noise with a known covariance, shape (n, n).
+
+    The matrix is symmetrised and round-off negative eigenvalues are clipped to zero
+    (posterior covariances of an earlier stage have them at about -1e-15). What was repaired
+    is recorded in ``n_clipped`` and ``min_eigenvalue``. An eigenvalue more negative than
+    ``tol`` times the largest is not round-off, and is refused.
+
+    Args:
+        cov: Covariance, shape (n, n), target unit squared.
+        tol: Relative size of negative eigenvalues accepted as round-off.
+    """
+
+    cov: np.ndarray
+    tol: float = 1e-8
+    n_clipped: int = field(default=0, init=False)
+    min_eigenvalue: float = field(default=0.0, init=False)
+    is_diagonal = False  # type: ignore[misc]
+
+    def __post_init__(self) -> None:
+        C = np.array(self.cov, dtype=float)
+        if C.ndim != 2 or C.shape[0] != C.shape[1]:
+            raise InputError(f"dense noise: expected a square (n, n) matrix, got shape {C.shape}")
+        if not np.all(np.isfinite(C)):
+            raise InputError("dense noise: the covariance contains NaN or inf")
+        scale = float(np.max(np.abs(C))) if C.size else 0.0
+        asym = float(np.max(np.abs(C - C.T))) if C.size else 0.0
+        if asym > 1e-8 * max(scale, np.finfo(float).tiny):
+            raise InputError(
+                f"dense noise: expected a symmetric matrix, got max |C - C^T| = {asym:.3g} "
+                f"(largest entry {scale:.3g})"
+            )
+        C = 0.5 * (C + C.T)
+        w, V = np.linalg.eigh(C) if C.size else (np.zeros(0), C)
+        wmin = float(w.min()) if w.size else 0.0
+        if wmin < -self.tol * max(float(w.max()), np.finfo(float).tiny):
+            raise InputError(
+                f"dense noise: expected a positive semi-definite covariance, got an eigenvalue "
+                f"of {wmin:.3g} against a largest of {float(w.max()):.3g}"
+            )
+        neg = w < 0
+        if np.any(neg):
+            C = (V * np.where(neg, 0.0, w)) @ V.T
+            C = 0.5 * (C + C.T)
+        object.__setattr__(self, "cov", C)
+        object.__setattr__(self, "n_clipped", int(np.count_nonzero(neg)))
+        object.__setattr__(self, "min_eigenvalue", wmin)
+
+    def _check(self, n: int) -> None:
+        if self.cov.shape != (n, n):
+            raise InputError(f"dense noise: expected shape ({n}, {n}), got {self.cov.shape}")
+
+    def diagonal(self, n: int) -> np.ndarray:
+        self._check(n)
+        return np.diagonal(self.cov).copy()
+
+    def dense(self, n: int) -> np.ndarray:
+        self._check(n)
+        return self.cov
+
+
+@dataclass(frozen=True, slots=True)
+class NoiseSum(Noise):
+    """Sum of independent noise sources."""
+
+    parts: tuple[Noise, ...] = ()
+
+    @property
+    def is_diagonal(self) -> bool:  # type: ignore[override]
+        return all(p.is_diagonal for p in self.parts)
+
+    def diagonal(self, n: int) -> np.ndarray:
+        return np.sum([p.diagonal(n) for p in self.parts], axis=0) if self.parts else np.zeros(n)
+
+    def dense(self, n: int) -> np.ndarray:
+        out = np.zeros((n, n))
+        for p in self.parts:
+            out = p.add_to(out)
+        return out
+
+    def __add__(self, other: Noise) -> NoiseSum:
+        return NoiseSum((*self.parts, other))
+
+
+def as_noise(spec: None | float | np.ndarray | Noise, n: int) -> Noise | None:
+    """Known noise from a number, an (n,) vector, an (n, n) matrix or a Noise; None stays None."""
+    if spec is None or isinstance(spec, Noise):
+        if isinstance(spec, Noise):
+            spec.diagonal(n)  # validates the size
+        return spec
+    a = np.asarray(spec, dtype=float)
+    if a.ndim == 0 or a.ndim == 1:
+        noise = Diagonal(a)
+        noise.diagonal(n)
+        return noise
+    if a.ndim == 2:
+        noise = Dense(a)
+        noise.dense(n)
+        return noise
+    raise InputError(f"noise: expected a number, shape ({n},) or ({n}, {n}), got shape {a.shape}")

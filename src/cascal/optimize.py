@@ -1,0 +1,140 @@
+"""Seeded multi-start maximisation of a log marginal likelihood in log-hyperparameter space.
+
+Candidates are drawn by Latin hypercube sampling inside finite log bounds and ranked by the
+cheap objective (no gradient); L-BFGS-B with the analytic gradient then starts from the
+best ``n_restarts`` of them (and from a given initial point, if any). The best optimum wins;
+every start is reported.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+
+from .errors import NumericalError
+
+__all__ = ["Start", "OptimResult", "maximize", "latin_hypercube"]
+
+
+@dataclass(frozen=True, slots=True)
+class Start:
+    """One L-BFGS-B run: where it began and ended, in log space."""
+
+    theta0: np.ndarray
+    theta: np.ndarray
+    value: float
+    n_evals: int
+    converged: bool
+
+
+@dataclass(frozen=True, slots=True)
+class OptimResult:
+    """Best log-hyperparameters found and the diagnostics of every start."""
+
+    theta: np.ndarray
+    value: float
+    starts: tuple[Start, ...]
+    n_candidates: int
+
+    @property
+    def n_evals(self) -> int:
+        """Objective evaluations: candidates plus every L-BFGS-B evaluation."""
+        return self.n_candidates + sum(s.n_evals for s in self.starts)
+
+
+def latin_hypercube(bounds: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` stratified points inside ``bounds`` (p, 2): shape (n, p)."""
+    p = len(bounds)
+    u = (rng.permuted(np.tile(np.arange(n), (p, 1)), axis=1).T + rng.random((n, p))) / n
+    return bounds[:, 0] + u * (bounds[:, 1] - bounds[:, 0])
+
+
+def maximize(
+    value: Callable[[np.ndarray], float],
+    value_and_grad: Callable[[np.ndarray], tuple[float, np.ndarray]],
+    bounds: np.ndarray,
+    *,
+    n_restarts: int = 5,
+    rng: np.random.Generator,
+    initial: np.ndarray | None = None,
+    n_candidates: int | None = None,
+) -> OptimResult:
+    """Maximise ``value`` over the box ``bounds`` from several seeded starts.
+
+    Args:
+        value: Objective, theta (p,) -> float (non-finite means infeasible).
+        value_and_grad: Objective and its gradient (p,).
+        bounds: Lower and upper bounds, shape (p, 2), finite.
+        n_restarts: Number of L-BFGS-B runs (at least 1).
+        rng: Source of the candidate points.
+        initial: Optional extra start, shape (p,), tried first.
+        n_candidates: Screened candidates; default ``8 * n_restarts`` (at least 16).
+
+    Returns:
+        The best optimum and one :class:`Start` per run.
+    """
+    bounds = np.asarray(bounds, dtype=float)
+    n_restarts = max(int(n_restarts), 1)
+    m = n_candidates if n_candidates is not None else max(8 * n_restarts, 16)
+    cands = latin_hypercube(bounds, m, rng)
+    scores = np.array([_safe(value, c) for c in cands])
+    lo, width = bounds[:, 0], bounds[:, 1] - bounds[:, 0]
+    width = np.where(width > 0, width, 1.0)
+    first = [] if initial is None else [np.clip(np.asarray(initial, float), lo, lo + width)]
+    picks = first + _diverse(cands, scores, (cands - lo) / width, n_restarts - len(first))
+    if not picks:
+        raise NumericalError(
+            "the log marginal likelihood could not be evaluated at any candidate "
+            "hyperparameters; check the data for near-duplicates and the bounds"
+        )
+
+    def neg(u: np.ndarray) -> tuple[float, np.ndarray]:
+        # L-BFGS-B works on the unit box: the log-bounds of every parameter map to [0, 1].
+        v, g = value_and_grad(lo + u * width)
+        if not np.isfinite(v):
+            return 1e300, np.zeros_like(u)
+        return -v, -g * width
+
+    unit = np.column_stack([np.zeros(len(lo)), np.ones(len(lo))])
+    starts = []
+    for theta0 in picks:
+        res = minimize(neg, (theta0 - lo) / width, jac=True, method="L-BFGS-B", bounds=unit)
+        starts.append(
+            Start(
+                theta0=np.asarray(theta0),
+                theta=lo + np.asarray(res.x) * width,
+                value=float(-res.fun),
+                n_evals=int(res.nfev),
+                converged=bool(res.success),
+            )
+        )
+    best = max(starts, key=lambda s: s.value)
+    return OptimResult(theta=best.theta, value=best.value, starts=tuple(starts), n_candidates=m)
+
+
+def _diverse(cands: np.ndarray, scores: np.ndarray, unit: np.ndarray, k: int) -> list:
+    """Best-scoring candidates, skipping any closer than 0.2 (unit box) to one already taken."""
+    order = [i for i in np.argsort(-scores, kind="stable") if np.isfinite(scores[i])]
+    taken: list[int] = []
+    for i in order:
+        if len(taken) == k:
+            break
+        if all(np.linalg.norm(unit[i] - unit[j]) > 0.2 for j in taken):
+            taken.append(i)
+    for i in order:  # too few distinct regions: fill with the next best
+        if len(taken) >= k:
+            break
+        if i not in taken:
+            taken.append(i)
+    return [cands[i] for i in taken]
+
+
+def _safe(f: Callable[[np.ndarray], float], theta: np.ndarray) -> float:
+    try:
+        v = float(f(theta))
+    except NumericalError:
+        return -np.inf
+    return v if np.isfinite(v) else -np.inf

@@ -1,0 +1,116 @@
+"""Figures of fits and results (matplotlib only). Plots draw finished results; they never fit.
+
+Every function takes an optional ``fig`` and returns the :class:`~matplotlib.figure.Figure`.
+Positions are drawn as corrections ``target - reading`` against the reading, the part of a
+calibration map that is not the identity.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from .cascade import FittedCascade
+from .gp import FittedGP
+
+__all__ = ["plot_cascade", "plot_stage"]
+
+_Z95 = 1.959963984540054
+
+
+def plot_stage(
+    gp: FittedGP,
+    *,
+    ax=None,
+    grid: np.ndarray | None = None,
+    truth=None,
+    label: str = "fit",
+    color: str = "C0",
+    errorbars: np.ndarray | None = None,
+    scale: float = 1.0,
+    unit: str = "m",
+    xunit: str = "m",
+    relative_to=None,
+):
+    """Draw one GP stage: data, posterior mean and 95 % band, optionally the true map.
+
+    Args:
+        gp: The fitted stage.
+        ax: Axes to draw on (a new figure if None).
+        grid: Readings to draw the fit at, shape (m,); default 400 points over the data.
+        truth: Optional callable reading -> true position, drawn dashed.
+        errorbars: Optional 95 % half-widths of the targets, shape (n,).
+        scale: Factor applied to corrections (e.g. 1e6 for micrometres), with ``unit``.
+        xunit: Unit of the readings on the horizontal axis.
+        relative_to: Callable reading -> position subtracted from everything drawn; default
+            the reading itself (corrections). With the true map, errors are drawn.
+    """
+    if ax is None:
+        ax = Figure(figsize=(7, 4), layout="constrained").subplots()
+    if grid is None:
+        lo, hi = float(gp.x.min()), float(gp.x.max())
+        grid = np.linspace(lo, hi, 400)
+    ref = (lambda r: r) if relative_to is None else relative_to
+    base = ref(grid)
+    mean, std = gp.predict(grid, return_std=True)
+    ax.fill_between(
+        grid,
+        (mean - _Z95 * std - base) * scale,
+        (mean + _Z95 * std - base) * scale,
+        color=color,
+        alpha=0.2,
+        lw=0,
+        label=f"{label}: 95 % band",
+    )
+    ax.plot(grid, (mean - base) * scale, color=color, lw=1.5, label=f"{label}: mean")
+    offsets = (gp.y - ref(gp.x)) * scale
+    if errorbars is not None:
+        ax.errorbar(
+            gp.x, offsets, yerr=errorbars * scale, fmt=".", ms=3, color="k", elinewidth=0.6,
+            alpha=0.7, label="targets (95 % of previous stage)",
+        )
+    else:
+        ax.plot(gp.x, offsets, "k.", ms=4, label="data")
+    if truth is not None:
+        ax.plot(grid, (truth(grid) - base) * scale, "r--", lw=1, label="true map")
+    ax.set_xlabel(f"reading [{xunit}]")
+    what = "correction" if relative_to is None else "deviation from true map"
+    ax.set_ylabel(f"{what} [{unit}]")
+    ax.legend(fontsize=7, loc="best")
+    return ax.figure
+
+
+def plot_cascade(
+    fitted: FittedCascade,
+    *,
+    truths: list | None = None,
+    fig: Figure | None = None,
+    scale: float = 1e6,
+    unit: str = "µm",
+) -> Figure:
+    """One panel per GP stage, like the paper's Fig. 4: stage fits with their 95 % bands.
+
+    Args:
+        fitted: A fitted ``bayes`` or ``homoscedastic`` cascade.
+        truths: Optional per-stage true maps (callables reading -> true position); when
+            given, each panel shows deviations from the true map, so the bands are visible.
+        fig: Figure to draw into (a new one if None).
+        scale, unit: Display scale for corrections (default micrometres).
+    """
+    models = [m for m in fitted.models if isinstance(m, FittedGP)]
+    if not models:
+        raise ValueError("plot_cascade needs a GP cascade ('bayes' or 'homoscedastic')")
+    if fig is None:
+        fig = Figure(figsize=(7.5, 3.2 * len(models)), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(len(models), 1))
+    for k, (gp, ax) in enumerate(zip(models, axes, strict=True)):
+        bars = None
+        if k > 0 and gp.noise is not None:
+            bars = _Z95 * np.sqrt(np.clip(gp.noise.diagonal(gp.x.size), 0.0, None))
+        truth = truths[k] if truths is not None else None
+        plot_stage(
+            gp, ax=ax, truth=truth, errorbars=bars, scale=scale, unit=unit,
+            label=f"stage {k}", color=f"C{k}", relative_to=truth,
+        )
+        ax.set_title(f"stage {k} ({fitted.stages[k].name}), method {fitted.method}", fontsize=9)
+    return fig

@@ -1,0 +1,174 @@
+"""The paper's simulated sensors and calibration designs (its Monte Carlo study, SPEC.md).
+
+Each sensor reads ``y_i = y* + e_i(y*) + eps`` with ``e_i`` a sum of ten random sinusoids;
+the reference reads ``y3 = y* + eps``. ``D2`` pairs test-bed and reference readings at 64
+positions (edges and centre unreachable); ``D1`` pairs device and test-bed readings at 100
+positions equally spaced in the device reading. Positions are in m on ``[0, 1]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "SensorMap",
+    "Trial",
+    "draw_map",
+    "simulate_trial",
+    "reference_positions",
+    "cost_j",
+    "NOISE_VARIANCE",
+    "COEF_VARIANCE",
+    "FREQ_VARIANCE",
+]
+
+NOISE_VARIANCE = 1e-8  #: variance of every reading's noise eps, m^2
+COEF_VARIANCE = 1e-4  #: variance of the sinusoid amplitudes a, b, c, d, m^2
+FREQ_VARIANCE = 6.0  #: variance of the angular frequencies w, (rad/m)^2
+N_TERMS = 10
+J_GRID = 2001  #: points of the trapezoid rule in the cost J
+
+
+@dataclass(frozen=True, slots=True)
+class SensorMap:
+    """True position -> reading: ``y* + sum_k a_k sin(w_k y*) + b_k cos(w_k y*)``.
+
+    Attributes:
+        a, b: Sine and cosine amplitudes, shape (10,), m.
+        w: Angular frequencies, shape (10,), rad/m.
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    w: np.ndarray
+
+    def __call__(self, y: np.ndarray) -> np.ndarray:
+        """Noise-free reading at true positions ``y`` (m,), m."""
+        wy = np.multiply.outer(np.asarray(y, dtype=float), self.w)
+        return y + np.sin(wy) @ self.a + np.cos(wy) @ self.b
+
+    def slope(self, y: np.ndarray) -> np.ndarray:
+        """d reading / d y* at ``y`` (m,), dimensionless."""
+        wy = np.multiply.outer(np.asarray(y, dtype=float), self.w)
+        return 1.0 + np.cos(wy) @ (self.a * self.w) - np.sin(wy) @ (self.b * self.w)
+
+    def is_increasing(self, lo: float = 0.0, hi: float = 1.0) -> bool:
+        """True if the map is strictly increasing on ``[lo, hi]`` (a rigorous check).
+
+        The slope deviates from 1 by at most ``B1 = sum |w| hypot(a, b)``; if ``B1 < 1`` the
+        map is increasing. Otherwise the slope is sampled with spacing ``h`` and the smallest
+        sample must exceed ``B2 h / 2``, ``B2 = sum w^2 hypot(a, b)`` bounding its change.
+        """
+        amp = np.hypot(self.a, self.b)
+        if float(np.sum(np.abs(self.w) * amp)) < 1.0:
+            return True
+        b2 = float(np.sum(self.w**2 * amp))
+        n = max(1001, int(np.ceil(b2 * (hi - lo) / 0.02)) + 1)
+        grid = np.linspace(lo, hi, n)
+        return bool(self.slope(grid).min() > b2 * (grid[1] - grid[0]) / 2)
+
+    def inverse(self, readings: np.ndarray, lo: float = 0.0, hi: float = 1.0) -> np.ndarray:
+        """True positions whose noise-free reading is ``readings`` (m,), by safeguarded Newton.
+
+        The map must be increasing on ``[lo, hi]`` and the readings inside its image.
+        """
+        r = np.asarray(readings, dtype=float)
+        a, b = np.full(r.shape, lo), np.full(r.shape, hi)
+        y = np.clip(r, lo, hi)
+        for _ in range(100):
+            f = self(y) - r
+            a = np.where(f < 0, y, a)
+            b = np.where(f > 0, y, b)
+            step = f / self.slope(y)
+            y_new = y - step
+            outside = (y_new <= a) | (y_new >= b)
+            y_new = np.where(outside, 0.5 * (a + b), y_new)
+            if np.max(np.abs(y_new - y)) < 1e-15:
+                return y_new
+            y = y_new
+        return y
+
+
+def draw_map(rng: np.random.Generator) -> SensorMap:
+    """One random sensor-error map as in the paper (amplitude and frequency variances)."""
+    a = rng.normal(0.0, np.sqrt(COEF_VARIANCE), N_TERMS)
+    b = rng.normal(0.0, np.sqrt(COEF_VARIANCE), N_TERMS)
+    w = rng.normal(0.0, np.sqrt(FREQ_VARIANCE), N_TERMS)
+    return SensorMap(a, b, w)
+
+
+def reference_positions() -> np.ndarray:
+    """The 64 true positions of D2: 100 equally spaced on [0, 1], minus 10 at each end and
+    the middle 16 of the 80 left (where the reference instrument cannot reach)."""
+    grid = np.linspace(0.0, 1.0, 100)[10:90]
+    return np.r_[grid[:32], grid[48:]]
+
+
+@dataclass(frozen=True, slots=True)
+class Trial:
+    """One simulated calibration problem.
+
+    Attributes:
+        testbed_map, device_map: Maps true position -> test-bed / device reading.
+        d2: (test-bed readings, reference readings), each (64,), m.
+        d1: (device readings, test-bed readings), each (100,), m.
+        redraws: Map draws discarded because a map was not strictly increasing.
+    """
+
+    testbed_map: SensorMap
+    device_map: SensorMap
+    d2: tuple[np.ndarray, np.ndarray]
+    d1: tuple[np.ndarray, np.ndarray]
+    redraws: int
+
+    @property
+    def device_range(self) -> tuple[float, float]:
+        """Noise-free device readings at y* = 0 and 1: the range of the cost J."""
+        ends = self.device_map(np.array([0.0, 1.0]))
+        return float(ends[0]), float(ends[1])
+
+    def truth(self, device_readings: np.ndarray) -> np.ndarray:
+        """True map f_1->3: device reading -> true position, shape (m,)."""
+        return self.device_map.inverse(device_readings)
+
+
+def simulate_trial(rng: np.random.Generator, *, n1: int = 100) -> Trial:
+    """Draw one trial of the paper's study from ``rng`` (maps first, then reading noise)."""
+    redraws = 0
+    while True:
+        testbed, device = draw_map(rng), draw_map(rng)
+        if testbed.is_increasing() and device.is_increasing():
+            break
+        redraws += 1
+    sd = np.sqrt(NOISE_VARIANCE)
+    ys2 = reference_positions()
+    y3 = ys2 + rng.normal(0.0, sd, ys2.size)
+    y2 = testbed(ys2) + rng.normal(0.0, sd, ys2.size)
+    ends = device(np.array([0.0, 1.0]))
+    grid = np.linspace(ends[0], ends[1], n1)
+    ys1 = device.inverse(grid)
+    y1 = grid + rng.normal(0.0, sd, n1)
+    y2_1 = testbed(ys1) + rng.normal(0.0, sd, n1)
+    return Trial(testbed, device, (y2, y3), (y1, y2_1), redraws)
+
+
+def cost_j(trial: Trial, corrected: np.ndarray | None = None, correct=None) -> float:
+    """RMS of ``fhat_1->3 - f_1->3`` over the device range (trapezoid rule, 2001 points).
+
+    Args:
+        trial: The simulated trial (its true device map).
+        corrected: Estimated true positions at :func:`j_grid` (trial), shape (2001,); or
+        correct: A callable device readings -> estimated true positions.
+    """
+    grid = j_grid(trial)
+    est = correct(grid) if correct is not None else np.asarray(corrected, dtype=float)
+    err2 = (est - trial.truth(grid)) ** 2
+    return float(np.sqrt(np.trapezoid(err2, grid) / (grid[-1] - grid[0])))
+
+
+def j_grid(trial: Trial) -> np.ndarray:
+    """The dense grid of device readings on which J is integrated, shape (2001,)."""
+    lo, hi = trial.device_range
+    return np.linspace(lo, hi, J_GRID)

@@ -1,0 +1,80 @@
+"""Checks at the library boundary: shapes, finiteness, duplicates, monotone sensor relations."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["as_positions", "check_pair", "check_increasing", "MIN_POINTS"]
+
+#: Fewest points a stage fit accepts.
+MIN_POINTS = 3
+
+
+def as_positions(a: object, name: str) -> np.ndarray:
+    """``a`` as a finite float64 vector, shape (n,); raises :class:`InputError` naming ``name``."""
+    try:
+        arr = np.asarray(a, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: expected numbers, got {type(a).__name__} ({exc})") from None
+    if arr.ndim != 1:
+        raise InputError(f"{name}: expected shape (n,), got {arr.shape}")
+    bad = np.flatnonzero(~np.isfinite(arr))
+    if bad.size:
+        raise InputError(
+            f"{name}: expected finite values, got {arr[bad[0]]} at index {bad[0]}"
+            + (f" (and {bad.size - 1} more)" if bad.size > 1 else "")
+        )
+    return arr
+
+
+def check_pair(
+    x: object, y: object, names: tuple[str, str] = ("x", "y"), *, min_points: int = MIN_POINTS
+) -> tuple[np.ndarray, np.ndarray]:
+    """Validate aligned readings ``x`` (n,) and targets ``y`` (n,) of one stage.
+
+    Raises:
+        InputError: On non-finite values, mismatched lengths, fewer than ``min_points`` points,
+            or one position with contradicting targets.
+    """
+    xa = as_positions(x, names[0])
+    ya = as_positions(y, names[1])
+    if xa.shape != ya.shape:
+        raise InputError(
+            f"{names[0]} and {names[1]}: expected the same length, got {xa.size} and {ya.size}"
+        )
+    if xa.size < min_points:
+        raise InputError(f"{names[0]}: expected at least {min_points} points, got {xa.size}")
+    order = np.argsort(xa, kind="stable")
+    xs, ys = xa[order], ya[order]
+    same = np.flatnonzero((np.diff(xs) == 0) & (np.diff(ys) != 0))
+    if same.size:
+        i, j = order[same[0]], order[same[0] + 1]
+        raise InputError(
+            f"{names[0]}: duplicated position {xs[same[0]]!r} at indices {i} and {j} with "
+            f"contradicting {names[1]} {ya[i]!r} and {ya[j]!r}; average repeated readings "
+            "(cascal.aggregate_repeats) so their spread becomes a known noise variance"
+        )
+    return xa, ya
+
+
+def check_increasing(x: np.ndarray, y: np.ndarray, names: tuple[str, str] = ("x", "y")) -> None:
+    """Require ``y`` strictly increasing in ``x``: two aligned sensors must relate one-to-one.
+
+    Raises:
+        InputError: Naming the first pair of neighbouring points where ``y`` does not increase.
+    """
+    order = np.argsort(x, kind="stable")
+    xs, ys = x[order], y[order]
+    keep = np.r_[True, np.diff(xs) > 0]
+    xs, ys, idx = xs[keep], ys[keep], order[keep]
+    bad = np.flatnonzero(np.diff(ys) <= 0)
+    if bad.size:
+        k = bad[0]
+        raise InputError(
+            f"{names[1]} is not increasing in {names[0]}: {names[0]}={xs[k]!r} -> "
+            f"{names[1]}={ys[k]!r} (index {idx[k]}) but {names[0]}={xs[k + 1]!r} -> "
+            f"{names[1]}={ys[k + 1]!r} (index {idx[k + 1]}); the two sensors must be related "
+            "one-to-one (the paper's bijectivity assumption)"
+        )
