@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from . import kernels, noise, simulation
+from .baselines import OffsetTable, fit_table
+from .cascade import Cascade, FittedCascade, Stage
 from .errors import CascalError, InputError, ModelFileError, NumericalError
 from .gp import FittedGP, Posterior, fit_gp, log_marginal_likelihood
 from .kernels import Constant, Matern32, Matern52, Periodic, SquaredExp
@@ -11,10 +14,12 @@ from .noise import Dense, Diagonal
 __version__ = "0.1.0"
 
 __all__ = [
+    "Cascade",
     "CascalError",
     "Constant",
     "Dense",
     "Diagonal",
+    "FittedCascade",
     "FittedGP",
     "InputError",
     "Matern32",
@@ -22,10 +27,16 @@ __all__ = [
     "Mean",
     "ModelFileError",
     "NumericalError",
+    "OffsetTable",
     "Periodic",
     "Posterior",
     "SquaredExp",
+    "Stage",
     "__version__",
     "fit_gp",
+    "fit_table",
+    "kernels",
     "log_marginal_likelihood",
+    "noise",
+    "simulation",
 ]

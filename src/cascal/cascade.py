@@ -24,7 +24,7 @@ from .kernels import Kernel
 from .noise import Dense, Noise, as_noise
 from .validation import as_positions, check_increasing, check_pair
 
-__all__ = ["Cascade", "FittedCascade", "METHODS", "Stage"]
+__all__ = ["METHODS", "Cascade", "FittedCascade", "Stage"]
 
 METHODS = ("bayes", "homoscedastic", "lut")
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["CascalError", "InputError", "NumericalError", "ModelFileError"]
+__all__ = ["CascalError", "InputError", "ModelFileError", "NumericalError"]
 
 
 class CascalError(Exception):

@@ -22,7 +22,7 @@ from .noise import Noise, as_noise
 from .optimize import OptimResult, maximize
 from .validation import as_positions, check_pair
 
-__all__ = ["FittedGP", "Posterior", "fit_gp", "log_marginal_likelihood", "Objective"]
+__all__ = ["FittedGP", "Objective", "Posterior", "fit_gp", "log_marginal_likelihood"]
 
 _LOG2PI = np.log(2.0 * np.pi)
 _CHUNK = 32768
@@ -194,7 +194,7 @@ def log_marginal_likelihood(
     *,
     kernel: Kernel,
     mean: str | float | Mean = "identity",
-    noise: None | float | np.ndarray | Noise = None,
+    noise: float | np.ndarray | Noise | None = None,
     noise_variance: float = 0.0,
     eval_gradient: bool = False,
 ) -> float | tuple[float, np.ndarray]:
@@ -300,7 +300,7 @@ def fit_gp(
     *,
     kernel: str | Kernel = "se",
     mean: str | float | Mean = "identity",
-    noise: None | float | np.ndarray | Noise = None,
+    noise: float | np.ndarray | Noise | None = None,
     learn_noise: bool | None = None,
     hyperparameters: dict[str, float] | None = None,
     n_restarts: int = 5,

@@ -13,16 +13,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = [
+    "KERNEL_NAMES",
+    "Constant",
     "Kernel",
-    "SquaredExp",
     "Matern32",
     "Matern52",
     "Periodic",
-    "Constant",
-    "Sum",
     "Product",
+    "SquaredExp",
+    "Sum",
     "make_kernel",
-    "KERNEL_NAMES",
 ]
 
 _SQRT3 = np.sqrt(3.0)

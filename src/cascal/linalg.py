@@ -7,7 +7,7 @@ from scipy.linalg import lapack
 
 from .errors import NumericalError
 
-__all__ = ["cholesky", "cho_solve", "logdet", "inverse_from_cholesky", "JITTER_STEPS"]
+__all__ = ["JITTER_STEPS", "cho_solve", "cholesky", "inverse_from_cholesky", "logdet"]
 
 #: Relative jitters tried after a plain Cholesky fails, times the mean diagonal.
 JITTER_STEPS = (1e-12, 1e-11, 1e-10, 1e-9, 1e-8, 1e-7, 1e-6)

@@ -13,7 +13,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["Noise", "Diagonal", "Dense", "NoiseSum", "as_noise"]
+__all__ = ["Dense", "Diagonal", "Noise", "NoiseSum", "as_noise"]
 
 
 class Noise:
@@ -152,7 +152,7 @@ class NoiseSum(Noise):
         return NoiseSum((*self.parts, other))
 
 
-def as_noise(spec: None | float | np.ndarray | Noise, n: int) -> Noise | None:
+def as_noise(spec: float | np.ndarray | Noise | None, n: int) -> Noise | None:
     """Known noise from a number, an (n,) vector, an (n, n) matrix or a Noise; None stays None."""
     if spec is None or isinstance(spec, Noise):
         if isinstance(spec, Noise):

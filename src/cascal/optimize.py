@@ -16,7 +16,7 @@ from scipy.optimize import minimize
 
 from .errors import NumericalError
 
-__all__ = ["Start", "OptimResult", "maximize", "latin_hypercube"]
+__all__ = ["OptimResult", "Start", "latin_hypercube", "maximize"]
 
 
 @dataclass(frozen=True, slots=True)

@@ -66,8 +66,15 @@ def plot_stage(
     offsets = (gp.y - ref(gp.x)) * scale
     if errorbars is not None:
         ax.errorbar(
-            gp.x, offsets, yerr=errorbars * scale, fmt=".", ms=3, color="k", elinewidth=0.6,
-            alpha=0.7, label="targets (95 % of previous stage)",
+            gp.x,
+            offsets,
+            yerr=errorbars * scale,
+            fmt=".",
+            ms=3,
+            color="k",
+            elinewidth=0.6,
+            alpha=0.7,
+            label="targets (95 % of previous stage)",
         )
     else:
         ax.plot(gp.x, offsets, "k.", ms=4, label="data")
@@ -109,8 +116,15 @@ def plot_cascade(
             bars = _Z95 * np.sqrt(np.clip(gp.noise.diagonal(gp.x.size), 0.0, None))
         truth = truths[k] if truths is not None else None
         plot_stage(
-            gp, ax=ax, truth=truth, errorbars=bars, scale=scale, unit=unit,
-            label=f"stage {k}", color=f"C{k}", relative_to=truth,
+            gp,
+            ax=ax,
+            truth=truth,
+            errorbars=bars,
+            scale=scale,
+            unit=unit,
+            label=f"stage {k}",
+            color=f"C{k}",
+            relative_to=truth,
         )
         ax.set_title(f"stage {k} ({fitted.stages[k].name}), method {fitted.method}", fontsize=9)
     return fig

@@ -13,15 +13,15 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
-    "SensorMap",
-    "Trial",
-    "draw_map",
-    "simulate_trial",
-    "reference_positions",
-    "cost_j",
-    "NOISE_VARIANCE",
     "COEF_VARIANCE",
     "FREQ_VARIANCE",
+    "NOISE_VARIANCE",
+    "SensorMap",
+    "Trial",
+    "cost_j",
+    "draw_map",
+    "reference_positions",
+    "simulate_trial",
 ]
 
 NOISE_VARIANCE = 1e-8  #: variance of every reading's noise eps, m^2

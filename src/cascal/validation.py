@@ -6,7 +6,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["as_positions", "check_pair", "check_increasing", "MIN_POINTS"]
+__all__ = ["MIN_POINTS", "as_positions", "check_increasing", "check_pair"]
 
 #: Fewest points a stage fit accepts.
 MIN_POINTS = 3

@@ -7,7 +7,7 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["atomic_write", "write_text", "save_figure"]
+__all__ = ["atomic_write", "save_figure", "write_text"]
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
