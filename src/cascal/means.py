@@ -11,7 +11,7 @@ __all__ = ["Mean", "make_mean"]
 
 @dataclass(frozen=True, slots=True)
 class Mean:
-    """m(x) = slope * x + offset. Identity (1, 0) says "the reading is right until shown otherwise"."""
+    """m(x) = slope * x + offset; identity (1, 0): the reading is right until shown otherwise."""
 
     slope: float = 1.0
     offset: float = 0.0

@@ -1,1 +1,1 @@
-"""File input and output: CSV data, model files, atomic writes. The numerical core never imports this."""
+"""File input and output: CSV data, model files, atomic writes (never used by the core)."""
