@@ -133,8 +133,13 @@ class Cascade:
             for upper, lower in zip(self.stages, self.stages[1:], strict=False):
                 _check_inside(lower, upper)
 
-    def fit(self) -> FittedCascade:
-        """Fit every stage from the reference end down; returns a :class:`FittedCascade`."""
+    def fit(self, first: FittedGP | None = None) -> FittedCascade:
+        """Fit every stage from the reference end down; returns a :class:`FittedCascade`.
+
+        Args:
+            first: An already fitted stage-0 GP to reuse (e.g. one test-bed calibration
+                shared by several methods or devices); it must be fitted on stage 0's data.
+        """
         children = np.random.SeedSequence(self.seed).spawn(len(self.stages))
         rngs = [np.random.default_rng(c) for c in children]
         if self.method == "lut":
@@ -142,6 +147,12 @@ class Cascade:
         models: list[FittedGP] = []
         used: list[Stage] = []
         for k, stage in enumerate(self.stages):
+            if k == 0 and first is not None:
+                if not (np.array_equal(first.x, stage.x) and np.array_equal(first.y, stage.y)):
+                    raise InputError("first: the given stage-0 GP was fitted on other data")
+                models.append(first)
+                used.append(stage)
+                continue
             if k == 0:
                 targets, noise = stage.y, stage.noise
             else:

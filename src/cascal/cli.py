@@ -53,6 +53,9 @@ def _parser() -> argparse.ArgumentParser:
     ex.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     ex.add_argument("--out", default="out", help="output folder (default out/)")
     ex.set_defaults(func=_cmd_example)
+    from .cli_study import add_study_parser
+
+    add_study_parser(sub)
     return p
 
 

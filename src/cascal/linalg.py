@@ -30,7 +30,8 @@ def cholesky(A: np.ndarray, *, what: str = "covariance matrix") -> tuple[np.ndar
         NumericalError: No jitter up to 1e-6 of the mean diagonal made ``A`` factorisable.
     """
     L, info = lapack.dpotrf(A, lower=1, clean=1, overwrite_a=0)
-    if info == 0:
+    # OpenBLAS's dpotrf reports success (info == 0) on NaN input, leaving NaN in L.
+    if info == 0 and np.all(np.isfinite(np.diagonal(L))):
         return L, 0.0
     if not np.all(np.isfinite(A)):
         raise NumericalError(f"{what} contains NaN or inf; check the inputs and hyperparameters")

@@ -13,7 +13,7 @@ from matplotlib.figure import Figure
 from .cascade import FittedCascade
 from .gp import FittedGP
 
-__all__ = ["plot_cascade", "plot_stage"]
+__all__ = ["plot_cascade", "plot_cost_distribution", "plot_stage"]
 
 _Z95 = 1.959963984540054
 
@@ -127,4 +127,39 @@ def plot_cascade(
             relative_to=truth,
         )
         ax.set_title(f"stage {k} ({fitted.stages[k].name}), method {fitted.method}", fontsize=9)
+    return fig
+
+
+def plot_cost_distribution(
+    costs: dict[str, object], *, fig: Figure | None = None, scale: float = 1e6, unit: str = "µm"
+) -> Figure:
+    """Normalised empirical PDFs and CDFs of J per method on a log axis (the paper's Fig. 5).
+
+    Args:
+        costs: J per method, each of shape (n_trials,), in m.
+        fig: Figure to draw into (a new one if None).
+        scale, unit: Display scale of J (default micrometres).
+    """
+    if fig is None:
+        fig = Figure(figsize=(7.5, 5.5), layout="constrained")
+    ax_pdf, ax_cdf = fig.subplots(2, 1, sharex=True)
+    arrays = {m: np.sort(np.asarray(j, dtype=float)) * scale for m, j in costs.items()}
+    positive = np.concatenate([a[a > 0] for a in arrays.values()])
+    edges = np.geomspace(positive.min(), positive.max(), 60)
+    for k, (m, j) in enumerate(arrays.items()):
+        hist, _ = np.histogram(j, bins=edges)
+        pdf = hist / max(hist.max(), 1)
+        centres = np.sqrt(edges[:-1] * edges[1:])
+        ax_pdf.plot(centres, pdf, color=f"C{k}", label=f"{m} (median {np.median(j):.3g} {unit})")
+        ax_cdf.step(j, np.arange(1, j.size + 1) / j.size, where="post", color=f"C{k}", label=m)
+    ax_pdf.set_xscale("log")
+    ax_pdf.set_ylabel("normalised empirical PDF")
+    ax_pdf.legend(fontsize=8)
+    ax_cdf.set_ylabel("empirical CDF")
+    ax_cdf.set_xlabel(f"J [{unit}]")
+    ax_cdf.set_ylim(0, 1)
+    n = len(next(iter(arrays.values())))
+    ax_pdf.set_title(f"Cost J over {n} trials", fontsize=9)
+    for ax in (ax_pdf, ax_cdf):
+        ax.grid(True, which="both", alpha=0.3)
     return fig

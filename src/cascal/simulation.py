@@ -20,6 +20,7 @@ __all__ = [
     "Trial",
     "cost_j",
     "draw_map",
+    "j_reference",
     "reference_positions",
     "simulate_trial",
 ]
@@ -70,24 +71,22 @@ class SensorMap:
         return bool(self.slope(grid).min() > b2 * (grid[1] - grid[0]) / 2)
 
     def inverse(self, readings: np.ndarray, lo: float = 0.0, hi: float = 1.0) -> np.ndarray:
-        """True positions whose noise-free reading is ``readings`` (m,), by safeguarded Newton.
+        """True positions whose noise-free reading is ``readings`` (m,), m.
 
-        The map must be increasing on ``[lo, hi]`` and the readings inside its image.
+        Linear interpolation in a 513-point table of the map gives the start; Newton steps
+        (clipped to ``[lo, hi]``) then converge quadratically to round-off. The map must be
+        increasing on ``[lo, hi]``.
         """
         r = np.asarray(readings, dtype=float)
-        a, b = np.full(r.shape, lo), np.full(r.shape, hi)
-        y = np.clip(r, lo, hi)
-        for _ in range(100):
-            f = self(y) - r
-            a = np.where(f < 0, y, a)
-            b = np.where(f > 0, y, b)
-            step = f / self.slope(y)
-            y_new = y - step
-            outside = (y_new <= a) | (y_new >= b)
-            y_new = np.where(outside, 0.5 * (a + b), y_new)
-            if np.max(np.abs(y_new - y)) < 1e-15:
-                return y_new
+        table = np.linspace(lo, hi, 513)
+        y = np.interp(r, self(table), table)
+        for _ in range(30):
+            step = (self(y) - r) / self.slope(y)
+            y_new = np.clip(y - step, lo, hi)
+            done = np.max(np.abs(y_new - y)) <= 1e-15
             y = y_new
+            if done:
+                break
         return y
 
 
@@ -154,21 +153,28 @@ def simulate_trial(rng: np.random.Generator, *, n1: int = 100) -> Trial:
     return Trial(testbed, device, (y2, y3), (y1, y2_1), redraws)
 
 
-def cost_j(trial: Trial, corrected: np.ndarray | None = None, correct=None) -> float:
+def cost_j(
+    trial: Trial,
+    corrected: np.ndarray | None = None,
+    correct=None,
+    reference: tuple[np.ndarray, np.ndarray] | None = None,
+) -> float:
     """RMS of ``fhat_1->3 - f_1->3`` over the device range (trapezoid rule, 2001 points).
 
     Args:
         trial: The simulated trial (its true device map).
-        corrected: Estimated true positions at :func:`j_grid` (trial), shape (2001,); or
+        corrected: Estimated true positions on the grid of :func:`j_reference`, (2001,); or
         correct: A callable device readings -> estimated true positions.
+        reference: ``j_reference(trial)``, when already computed (it costs an inversion).
     """
-    grid = j_grid(trial)
+    grid, truth = reference if reference is not None else j_reference(trial)
     est = correct(grid) if correct is not None else np.asarray(corrected, dtype=float)
-    err2 = (est - trial.truth(grid)) ** 2
+    err2 = (est - truth) ** 2
     return float(np.sqrt(np.trapezoid(err2, grid) / (grid[-1] - grid[0])))
 
 
-def j_grid(trial: Trial) -> np.ndarray:
-    """The dense grid of device readings on which J is integrated, shape (2001,)."""
+def j_reference(trial: Trial) -> tuple[np.ndarray, np.ndarray]:
+    """Grid of device readings for J, shape (2001,), and the true positions there, m."""
     lo, hi = trial.device_range
-    return np.linspace(lo, hi, J_GRID)
+    grid = np.linspace(lo, hi, J_GRID)
+    return grid, trial.truth(grid)

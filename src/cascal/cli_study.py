@@ -1,0 +1,104 @@
+"""``cascal study``: the paper's Monte Carlo study from the command line, with progress."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+__all__ = ["Progress", "add_study_parser"]
+
+
+class Progress:
+    """A bar with rate and ETA on a terminal; sparse plain lines otherwise (logs, CI)."""
+
+    def __init__(self, stream=None, every_s: float = 15.0) -> None:
+        self.stream = stream or sys.stderr
+        self.tty = self.stream.isatty()
+        self.bar = None
+        self.every_s = every_s
+        self.t0 = time.perf_counter()
+        self.last = -1e9
+        self.start_done = 0
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.tty:
+            if self.bar is None:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=total, initial=done, unit="trial", file=self.stream)
+                self.start_done = done
+            else:
+                self.bar.update(done - self.bar.n)
+            return
+        now = time.perf_counter()
+        if self.last < -1e8:
+            self.start_done, self.last = done, now
+            return
+        if done < total and now - self.last < self.every_s:
+            return
+        self.last = now
+        rate = (done - self.start_done) / max(now - self.t0, 1e-9)
+        eta = (total - done) / rate if rate > 0 else float("nan")
+        print(
+            f"{done}/{total} trials ({100 * done / total:.0f} %), {rate:.1f} trials/s, "
+            f"ETA {eta:.0f} s",
+            file=self.stream,
+            flush=True,
+        )
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _cmd_study(args: argparse.Namespace) -> int:
+    from .montecarlo import StudyConfig
+    from .study import run_study
+
+    config = StudyConfig(seed=args.seed, n_restarts=args.restarts)
+    progress = Progress()
+    t0 = time.perf_counter()
+    try:
+        outcome = run_study(
+            args.out,
+            trials=args.trials,
+            config=config,
+            workers=args.workers,
+            scheduler=args.scheduler,
+            progress=progress,
+        )
+    finally:
+        progress.close()
+    wall = time.perf_counter() - t0
+    s = outcome.summary
+    print(f"Study of {s['n_trials']} trials in {args.out}/ ({outcome.ran} run now, {wall:.1f} s).")
+    print(f"{'method':>14} {'median J':>12} {'mean J':>12} {'q10':>10} {'q90':>10}  [µm]")
+    for m, st in s["methods"].items():
+        print(
+            f"{m:>14} {st['median'] * 1e6:12.3f} {st['mean'] * 1e6:12.3f} "
+            f"{st['q10'] * 1e6:10.3f} {st['q90'] * 1e6:10.3f}"
+        )
+    for pair, st in s["pairs"].items():
+        a = pair.split(" vs ")[0]
+        print(
+            f"{pair:>30}: {a} better in {100 * st['fraction_a_better']:.1f} % of trials, "
+            f"Wilcoxon p = {st['wilcoxon_p']:.2e}"
+        )
+    print(f"Bijectivity redraws: {s['redraws']}. Figure: {args.out}/cost_distribution.png")
+    return 0
+
+
+def add_study_parser(sub) -> None:
+    """Register ``cascal study`` on the subparsers ``sub``."""
+    p = sub.add_parser("study", help="run the paper's Monte Carlo study (resumable)")
+    p.add_argument("--trials", type=int, default=12000, help="number of trials (12000)")
+    p.add_argument("--seed", type=int, default=0, help="root seed (0)")
+    p.add_argument("--restarts", type=int, default=5, help="L-BFGS-B starts per GP fit (5)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, default=None, help="local processes (CPU count)")
+    where.add_argument(
+        "--scheduler", default=None, help="Dask scheduler address, e.g. tcp://h:8786"
+    )
+    p.add_argument("--out", default="out/study", help="output folder (out/study)")
+    p.set_defaults(func=_cmd_study)

@@ -1,0 +1,152 @@
+"""The paper's Monte Carlo study: one trial per index, three methods, cost J, summaries.
+
+A trial's randomness derives from ``(seed, index)`` alone (a :class:`numpy.random.SeedSequence`
+with the index as spawn key), so results do not depend on the number of workers or on the
+order in which trials finish. Nothing here does I/O; the runner in :mod:`cascal.study`
+stores results and drives executors.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from itertools import combinations
+
+import numpy as np
+from scipy.stats import wilcoxon
+
+from .cascade import METHODS, Cascade
+from .gp import FittedGP, single_threaded_blas
+from .simulation import cost_j, j_reference, simulate_trial
+
+__all__ = ["StudyConfig", "TrialResult", "run_chunk", "run_trial", "summarize", "trial_rng"]
+
+QUANTILES = (0.10, 0.25, 0.50, 0.75, 0.90)
+
+
+@dataclass(frozen=True, slots=True)
+class StudyConfig:
+    """What a study computes; two runs with equal configs give identical numbers.
+
+    Attributes:
+        seed: Root seed of the study.
+        n_restarts: L-BFGS-B starts per GP stage fit.
+        kernel: Kernel of every GP stage.
+        methods: Methods compared in every trial.
+    """
+
+    seed: int = 0
+    n_restarts: int = 5
+    kernel: str = "se"
+    methods: tuple[str, ...] = METHODS
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["methods"] = list(self.methods)
+        return d
+
+
+@dataclass(frozen=True, slots=True)
+class TrialResult:
+    """One trial: J per method (m), fitted hyperparameters, diagnostics and timings (s).
+
+    ``fits`` maps ``"<method>/<stage>"`` to that stage's hyperparameters, log marginal
+    likelihood and jitter; the stage-0 GP is shared by ``bayes`` and ``homoscedastic``.
+    """
+
+    index: int
+    cost: dict[str, float]
+    redraws: int
+    fits: dict[str, dict[str, float]] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def trial_rng(seed: int, index: int) -> np.random.Generator:
+    """The generator of trial ``index`` in a study seeded with ``seed``."""
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(index,)))
+
+
+def _fit_record(gp: FittedGP) -> dict[str, float]:
+    rec = {k: float(v) for k, v in gp.hyperparameters.items()}
+    rec["log_marginal_likelihood"] = float(gp.log_marginal_likelihood)
+    rec["jitter"] = float(gp.jitter)
+    if gp.noise is not None and hasattr(gp.noise, "n_clipped"):
+        rec["clipped_eigenvalues"] = float(gp.noise.n_clipped)
+    return rec
+
+
+def run_trial(config: StudyConfig, index: int) -> TrialResult:
+    """Simulate trial ``index`` and score every method of ``config`` on it."""
+    with single_threaded_blas():
+        return _run_trial(config, index)
+
+
+def _run_trial(config: StudyConfig, index: int) -> TrialResult:
+    t0 = time.perf_counter()
+    rng = trial_rng(config.seed, index)
+    trial = simulate_trial(rng)
+    fit_seed = int(rng.integers(2**63))
+    reference = j_reference(trial)
+    seconds = {"simulate": time.perf_counter() - t0}
+    cost: dict[str, float] = {}
+    fits: dict[str, dict[str, float]] = {}
+    stage0 = None
+    for method in config.methods:
+        t = time.perf_counter()
+        cascade = Cascade(
+            [trial.d2, trial.d1],
+            method,
+            kernel=config.kernel,
+            n_restarts=config.n_restarts,
+            seed=fit_seed,
+        )
+        fitted = cascade.fit(first=stage0) if method != "lut" else cascade.fit()
+        if method != "lut" and stage0 is None:
+            stage0 = fitted.models[0]
+            fits["stage0"] = _fit_record(stage0)
+        if method != "lut":
+            fits[f"{method}/stage1"] = _fit_record(fitted.models[1])
+        t1 = time.perf_counter()
+        cost[method] = cost_j(trial, correct=fitted.correct, reference=reference)
+        seconds[method] = t1 - t
+        seconds[f"{method}_cost"] = time.perf_counter() - t1
+    return TrialResult(index, cost, trial.redraws, fits, seconds)
+
+
+def run_chunk(config: StudyConfig, indices: list[int]) -> list[TrialResult]:
+    """Run several trials in one task (for executors); order follows ``indices``."""
+    return [run_trial(config, i) for i in indices]
+
+
+def summarize(costs: dict[str, np.ndarray]) -> dict:
+    """Statistics of J per method and paired comparisons between methods.
+
+    Args:
+        costs: J per method, each of shape (n_trials,), paired by trial.
+
+    Returns:
+        ``{"n_trials", "methods": {m: {median, mean, q10, q25, q75, q90}}, "pairs":
+        {"a vs b": {fraction_a_better, wilcoxon_p}}}``; the Wilcoxon signed-rank test is
+        two-sided on the paired differences.
+    """
+    out: dict = {"n_trials": len(next(iter(costs.values()))), "methods": {}, "pairs": {}}
+    for m, j in costs.items():
+        j = np.asarray(j, dtype=float)
+        q = np.quantile(j, QUANTILES)
+        out["methods"][m] = {
+            "median": float(q[2]),
+            "mean": float(np.mean(j)),
+            "q10": float(q[0]),
+            "q25": float(q[1]),
+            "q75": float(q[3]),
+            "q90": float(q[4]),
+        }
+    for a, b in combinations(costs, 2):
+        ja, jb = np.asarray(costs[a], float), np.asarray(costs[b], float)
+        diff = ja - jb
+        p = float(wilcoxon(ja, jb).pvalue) if np.any(diff != 0) else 1.0
+        out["pairs"][f"{a} vs {b}"] = {
+            "fraction_a_better": float(np.mean(ja < jb)),
+            "wilcoxon_p": p,
+        }
+    return out

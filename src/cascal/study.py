@@ -1,0 +1,168 @@
+"""Run the Monte Carlo study on an executor, store trials as they finish, write the outputs.
+
+Work goes to any :mod:`concurrent.futures` executor: local worker processes by default, a
+Dask cluster through ``distributed.Client(address).get_executor()``, or the calling
+process for one worker. Finished trials are committed to SQLite at once, so an interrupted
+study resumes where it stopped with the same command and ends with identical numbers.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import multiprocessing
+from collections.abc import Callable
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .io.atomic import save_figure, write_text
+from .io.studydb import StudyDB
+from .montecarlo import StudyConfig, TrialResult, run_chunk, summarize
+
+__all__ = ["StudyOutcome", "run_study", "trials_table"]
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True, slots=True)
+class StudyOutcome:
+    """What a finished study wrote and found.
+
+    Attributes:
+        folder: Output folder.
+        results: Every trial, ordered by index.
+        summary: As written to ``summary.json``.
+        ran: Trials computed by this call (the rest were resumed from the database).
+    """
+
+    folder: Path
+    results: list[TrialResult]
+    summary: dict
+    ran: int
+
+
+def run_study(
+    out: str | Path,
+    *,
+    trials: int = 12000,
+    config: StudyConfig | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    executor: Executor | None = None,
+    chunk: int | None = None,
+    progress: Progress | None = None,
+) -> StudyOutcome:
+    """Run (or resume) the study in folder ``out`` and write its outputs there.
+
+    Args:
+        out: Output folder: ``study.sqlite``, ``trials.csv``, ``summary.json``,
+            ``cost_distribution.png`` and ``.svg``.
+        trials: Number of trials.
+        config: Seed and fit settings (part of the folder's identity).
+        workers: Local worker processes (default: CPU count; 1 runs in this process).
+        scheduler: Address of a Dask scheduler to run on instead (needs ``distributed``).
+        executor: Any executor to run on instead (takes precedence).
+        chunk: Trials per task (default: about 8 tasks per worker, at most 50 trials).
+        progress: Called as ``progress(done, total)`` after every finished task.
+    """
+    config = config or StudyConfig()
+    folder = Path(out)
+    db = StudyDB(folder, {**config.as_dict(), "trials": int(trials)})
+    try:
+        pending = sorted(set(range(trials)) - db.done())
+        n_workers = workers or multiprocessing.cpu_count()
+        size = chunk or max(1, min(50, len(pending) // (8 * n_workers) or 1))
+        chunks = [pending[i : i + size] for i in range(0, len(pending), size)]
+        done = trials - len(pending)
+        if progress:
+            progress(done, trials)
+        for results in _execute(config, chunks, executor, scheduler, n_workers):
+            db.add(results)
+            done += len(results)
+            if progress:
+                progress(done, trials)
+        results = db.results()
+    finally:
+        db.close()
+    summary = summarize({m: np.array([r.cost[m] for r in results]) for m in config.methods})
+    summary["redraws"] = int(sum(r.redraws for r in results))
+    summary["seconds_per_trial"] = _mean_seconds(results)
+    summary["config"] = config.as_dict()
+    write_text(folder / "trials.csv", trials_table(results, config.methods))
+    write_text(folder / "summary.json", json.dumps(summary, indent=2) + "\n")
+    from .plots import plot_cost_distribution
+
+    fig = plot_cost_distribution({m: [r.cost[m] for r in results] for m in config.methods})
+    save_figure(fig, folder / "cost_distribution.png", dpi=130)
+    save_figure(fig, folder / "cost_distribution.svg")
+    return StudyOutcome(folder, results, summary, len(pending))
+
+
+def _execute(config, chunks, executor, scheduler, n_workers):
+    """Yield each chunk's results as it completes, on the chosen executor."""
+    if not chunks:
+        return
+    if executor is None and scheduler is None and n_workers == 1:
+        for c in chunks:
+            yield run_chunk(config, c)
+        return
+    pool = client = None
+    if executor is None:
+        if scheduler is not None:
+            from distributed import Client
+
+            client = Client(scheduler)
+            executor = client.get_executor()
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            executor = pool = ProcessPoolExecutor(n_workers, mp_context=ctx)
+    futures: list[Future] = []
+    try:
+        futures = [executor.submit(run_chunk, config, c) for c in chunks]
+        for fut in as_completed(futures):
+            yield fut.result()
+    finally:
+        for f in futures:
+            f.cancel()
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+        if client is not None:
+            client.close()  # disconnect only: the cluster belongs to the user
+
+
+def _mean_seconds(results: list[TrialResult]) -> dict[str, float]:
+    keys = sorted({k for r in results for k in r.seconds})
+    return {k: float(np.mean([r.seconds.get(k, 0.0) for r in results])) for k in keys}
+
+
+def trials_table(results: list[TrialResult], methods) -> str:
+    """CSV text: one row per trial with J per method, redraws, fits and timings."""
+    fit_keys = sorted({f"{s}.{k}" for r in results for s, d in r.fits.items() for k in d})
+    sec_keys = sorted({k for r in results for k in r.seconds})
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(
+        [
+            "index",
+            *(f"J_{m}" for m in methods),
+            "redraws",
+            *fit_keys,
+            *(f"seconds.{k}" for k in sec_keys),
+        ]
+    )
+    for r in results:
+        fits = [r.fits.get(k.split(".", 1)[0], {}).get(k.split(".", 1)[1], "") for k in fit_keys]
+        w.writerow(
+            [
+                r.index,
+                *(repr(r.cost[m]) for m in methods),
+                r.redraws,
+                *(repr(v) if v != "" else "" for v in fits),
+                *(f"{r.seconds.get(k, 0.0):.6g}" for k in sec_keys),
+            ]
+        )
+    return buf.getvalue()

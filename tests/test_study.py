@@ -1,0 +1,121 @@
+"""The Monte Carlo study runner: determinism across workers, resume, Dask, outputs."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.stats import wilcoxon
+
+from cascal.errors import InputError
+from cascal.montecarlo import StudyConfig, run_trial, summarize, trial_rng
+from cascal.study import run_study
+
+CONFIG = StudyConfig(seed=7, n_restarts=2)
+
+
+def _costs(outcome):
+    return [(r.index, r.cost) for r in outcome.results]
+
+
+def test_trial_depends_on_seed_and_index_only():
+    a = trial_rng(3, 5).standard_normal(4)
+    b = trial_rng(3, 5).standard_normal(4)
+    c = trial_rng(3, 6).standard_normal(4)
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    r1, r2 = run_trial(CONFIG, 2), run_trial(CONFIG, 2)
+    assert r1.cost == r2.cost and r1.fits == r2.fits
+
+
+def test_same_numbers_with_one_and_two_workers(tmp_path):
+    one = run_study(tmp_path / "one", trials=6, config=CONFIG, workers=1)
+    two = run_study(tmp_path / "two", trials=6, config=CONFIG, workers=2, chunk=1)
+    assert _costs(one) == _costs(two)  # bit-identical floats
+    assert [r.index for r in one.results] == list(range(6))
+
+
+def test_interrupted_study_resumes_to_identical_numbers(tmp_path):
+    full = run_study(tmp_path / "full", trials=5, config=CONFIG, workers=1)
+
+    def stop_after_two(done, total):
+        if done >= 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_study(
+            tmp_path / "cut", trials=5, config=CONFIG, workers=1, chunk=1, progress=stop_after_two
+        )
+    resumed = run_study(tmp_path / "cut", trials=5, config=CONFIG, workers=1)
+    assert resumed.ran == 3  # the two stored trials are not run again
+    assert _costs(resumed) == _costs(full)
+    assert resumed.summary["methods"] == full.summary["methods"]
+
+
+def test_folder_with_other_configuration_is_refused(tmp_path):
+    run_study(tmp_path, trials=2, config=CONFIG, workers=1)
+    with pytest.raises(InputError, match="holds a study with configuration"):
+        run_study(tmp_path, trials=2, config=StudyConfig(seed=8, n_restarts=2), workers=1)
+
+
+def test_dask_cluster_gives_the_local_numbers(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    local = run_study(tmp_path / "local", trials=4, config=CONFIG, workers=1)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
+        remote = run_study(
+            tmp_path / "dask", trials=4, config=CONFIG, scheduler=cluster.scheduler_address, chunk=1
+        )
+    assert _costs(remote) == _costs(local)
+
+
+def test_summary_against_independent_statistics():
+    rng = np.random.default_rng(0)
+    a = rng.lognormal(0, 1, 200)
+    b = a * rng.lognormal(0.3, 0.2, 200)
+    s = summarize({"a": a, "b": b})
+    assert s["n_trials"] == 200
+    assert s["methods"]["a"]["median"] == pytest.approx(np.percentile(a, 50), rel=1e-12)
+    assert s["methods"]["b"]["q90"] == pytest.approx(np.percentile(b, 90), rel=1e-12)
+    assert s["methods"]["a"]["mean"] == pytest.approx(a.mean(), rel=1e-12)
+    pair = s["pairs"]["a vs b"]
+    assert pair["fraction_a_better"] == pytest.approx(np.count_nonzero(a < b) / 200)
+    assert pair["wilcoxon_p"] == pytest.approx(wilcoxon(a - b).pvalue, rel=1e-12)
+
+
+def test_cli_study_writes_outputs(tmp_path):
+    out = tmp_path / "study"
+    cmd = [
+        sys.executable,
+        "-m",
+        "cascal.cli",
+        "study",
+        "--trials",
+        "3",
+        "--workers",
+        "1",
+        "--restarts",
+        "2",
+        "--out",
+        str(out),
+    ]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "median J" in done.stdout
+    rows = (out / "trials.csv").read_text().splitlines()
+    assert rows[0].startswith("index,J_bayes,J_homoscedastic,J_lut,redraws")
+    assert len(rows) == 4
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["methods"]) == {"bayes", "homoscedastic", "lut"}
+    assert (out / "cost_distribution.png").stat().st_size > 10_000
+    assert (out / "cost_distribution.svg").read_text().lstrip().startswith("<?xml")
+    again = subprocess.run(
+        cmd[:-4] + ["--restarts", "3", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert again.returncode == 2 and "Traceback" not in again.stderr
