@@ -113,7 +113,7 @@ def test_cli_study_writes_outputs(tmp_path):
     assert (out / "cost_distribution.png").stat().st_size > 10_000
     assert (out / "cost_distribution.svg").read_text().lstrip().startswith("<?xml")
     again = subprocess.run(
-        cmd[:-4] + ["--restarts", "3", "--out", str(out)],
+        [*cmd[:-4], "--restarts", "3", "--out", str(out)],
         capture_output=True,
         text=True,
         check=False,
