@@ -22,6 +22,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python benchmarks/bench_fit.py
+	$(BIN)/python benchmarks/bench_study.py
 
 format: $(STAMP)
 	$(BIN)/ruff check --fix src tests benchmarks

@@ -213,6 +213,6 @@ def _check_inside(lower: Stage, upper: Stage) -> None:
     if out.size:
         i = out[0]
         raise InputError(
-            f"{lower.name} y: reading {lower.y[i]!r} (index {i}) lies outside the range "
+            f"{lower.name} y: reading {float(lower.y[i])!r} (index {i}) lies outside the range "
             f"[{lo!r}, {hi!r}] calibrated by {upper.name}; {out.size} reading(s) outside"
         )

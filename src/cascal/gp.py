@@ -131,8 +131,8 @@ class Objective:
     def _profiled(self, theta: np.ndarray, grad: bool) -> tuple[float, np.ndarray]:
         # Kt = s2 (R + g I); s2 maximised out: s2 = r^T A^-1 r / n with A = R + g I.
         n, r = self.n, self.r
-        k = self.kernel.with_theta(np.array([theta[0], 0.0]))
-        rho, drho = k.correlation(self.d, grad)  # type: ignore[attr-defined]
+        k = self.kernel.unit(float(np.exp(theta[0])))  # type: ignore[attr-defined]
+        rho, drho = k.correlation(self.d, grad)
         g = np.exp(theta[1])
         A = rho  # freshly computed: safe to add the diagonal in place
         A.flat[:: n + 1] += g
@@ -340,8 +340,18 @@ def fit_gp(
     """
     with single_threaded_blas():
         return _fit_gp(
-            x, y, kernel, mean, noise, learn_noise, hyperparameters, n_restarts, seed, period,
-            bounds, names,
+            x,
+            y,
+            kernel,
+            mean,
+            noise,
+            learn_noise,
+            hyperparameters,
+            n_restarts,
+            seed,
+            period,
+            bounds,
+            names,
         )
 
 

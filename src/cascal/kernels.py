@@ -80,7 +80,9 @@ class Kernel:
     def __add__(self, other: Kernel | float) -> Sum:
         return Sum(self, _as_kernel(other))
 
-    def __radd__(self, other: Kernel | float) -> Sum:
+    def __radd__(self, other: Kernel | float) -> Kernel:
+        if not isinstance(other, Kernel) and other == 0:
+            return self  # sum([k1, k2]) starts from 0: add no zero Constant (log 0 = -inf)
         return Sum(_as_kernel(other), self)
 
     def __mul__(self, other: Kernel | float) -> Product:
@@ -116,6 +118,12 @@ class _Scaled(Kernel):
         l, v = np.exp(np.asarray(theta, dtype=float))
         return _replace(self, length_scale=float(l), variance=float(v))
 
+    def unit(self, length_scale: float) -> _Scaled:
+        """This kernel at unit variance and the given length scale (fast constructor)."""
+        if type(self) in (SquaredExp, Matern32, Matern52):
+            return type(self)(length_scale, 1.0)
+        return _replace(self, length_scale=length_scale, variance=1.0)
+
     def correlation(self, d: np.ndarray, grad: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """rho (n, n) at unit variance and d rho / d log length_scale (or None)."""
         raise NotImplementedError
@@ -139,9 +147,11 @@ class SquaredExp(_Scaled):
     """k(a, b) = variance * exp(-(a - b)^2 / (2 length_scale^2)); the paper's kernel."""
 
     def correlation(self, d, grad):
-        s = (d / self.length_scale) ** 2
-        rho = np.exp(-0.5 * s)
-        return rho, (rho * s if grad else None)
+        s = np.square(d)
+        s *= 1.0 / (self.length_scale * self.length_scale)
+        rho = np.multiply(s, -0.5)
+        np.exp(rho, out=rho)
+        return rho, (np.multiply(rho, s, out=s) if grad else None)
 
 
 @dataclass(frozen=True, slots=True)
@@ -192,6 +202,10 @@ class Constant(Kernel):
 
     value: float = 1.0
     names = ("value",)  # type: ignore[misc]
+
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.value) or self.value <= 0:
+            raise ValueError(f"value must be positive and finite, got {self.value!r}")
 
     @property
     def theta(self) -> np.ndarray:

@@ -71,14 +71,14 @@ def maximize(
         n_restarts: Number of L-BFGS-B runs (at least 1).
         rng: Source of the candidate points.
         initial: Optional extra start, shape (p,), tried first.
-        n_candidates: Screened candidates; default ``8 * n_restarts`` (at least 16).
+        n_candidates: Screened candidates; default ``6 * n_restarts`` (at least 16).
 
     Returns:
         The best optimum and one :class:`Start` per run.
     """
     bounds = np.asarray(bounds, dtype=float)
     n_restarts = max(int(n_restarts), 1)
-    m = n_candidates if n_candidates is not None else max(8 * n_restarts, 16)
+    m = n_candidates if n_candidates is not None else max(6 * n_restarts, 16)
     cands = latin_hypercube(bounds, m, rng)
     scores = np.array([_safe(value, c) for c in cands])
     lo, width = bounds[:, 0], bounds[:, 1] - bounds[:, 0]

@@ -52,8 +52,9 @@ def check_pair(
     if same.size:
         i, j = order[same[0]], order[same[0] + 1]
         raise InputError(
-            f"{names[0]}: duplicated position {xs[same[0]]!r} at indices {i} and {j} with "
-            f"contradicting {names[1]} {ya[i]!r} and {ya[j]!r}; average repeated readings "
+            f"{names[0]}: duplicated position {float(xs[same[0]])!r} at indices {i} and {j} "
+            f"with contradicting {names[1]} {float(ya[i])!r} and {float(ya[j])!r}; average "
+            "repeated readings "
             "(cascal.aggregate_repeats) so their spread becomes a known noise variance"
         )
     return xa, ya
@@ -72,9 +73,10 @@ def check_increasing(x: np.ndarray, y: np.ndarray, names: tuple[str, str] = ("x"
     bad = np.flatnonzero(np.diff(ys) <= 0)
     if bad.size:
         k = bad[0]
+        xk, yk, xn, yn = (float(v) for v in (xs[k], ys[k], xs[k + 1], ys[k + 1]))
         raise InputError(
-            f"{names[1]} is not increasing in {names[0]}: {names[0]}={xs[k]!r} -> "
-            f"{names[1]}={ys[k]!r} (index {idx[k]}) but {names[0]}={xs[k + 1]!r} -> "
-            f"{names[1]}={ys[k + 1]!r} (index {idx[k + 1]}); the two sensors must be related "
+            f"{names[1]} is not increasing in {names[0]}: {names[0]}={xk!r} -> "
+            f"{names[1]}={yk!r} (index {idx[k]}) but {names[0]}={xn!r} -> "
+            f"{names[1]}={yn!r} (index {idx[k + 1]}); the two sensors must be related "
             "one-to-one (the paper's bijectivity assumption)"
         )
