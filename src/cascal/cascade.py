@@ -158,7 +158,11 @@ class Cascade:
             else:
                 post = models[-1].posterior(stage.y)
                 targets = post.mean
-                noise = _propagated(post.cov, stage) if self.method == "bayes" else stage.noise
+                if self.method == "bayes":
+                    prior = float(np.max(models[-1].kernel.diag(stage.y)))
+                    noise = _propagated(post.cov, stage, prior)
+                else:
+                    noise = stage.noise
             gp = fit_gp(
                 stage.x,
                 targets,
@@ -185,8 +189,9 @@ class Cascade:
         return FittedCascade("lut", tuple(tables), tuple(used))
 
 
-def _propagated(cov: np.ndarray, stage: Stage) -> Noise:
-    noise = Dense(cov)
+def _propagated(cov: np.ndarray, stage: Stage, prior_variance: float) -> Noise:
+    # Round-off in K** - V^T V scales with the prior variance: accept -1e-9 of it.
+    noise = Dense(cov, atol=1e-9 * prior_variance)
     own = as_noise(stage.noise, len(stage.x))
     return noise if own is None else noise + own
 

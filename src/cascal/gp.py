@@ -12,11 +12,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import lapack, solve_triangular
+from scipy.linalg import solve_triangular
 
 from . import linalg
 from .errors import InputError
 from .kernels import Kernel, Periodic, _Scaled, make_kernel
+from .likelihood import Objective
 from .means import Mean, make_mean
 from .noise import Noise, as_noise
 from .optimize import OptimResult, maximize
@@ -49,153 +50,6 @@ class Posterior:
     def std(self) -> np.ndarray:
         """Standard deviations, shape (m,)."""
         return np.sqrt(np.clip(np.diagonal(self.cov), 0.0, None))
-
-
-class Objective:
-    """Log marginal likelihood of one data set as a function of log-hyperparameters.
-
-    ``theta`` is ``[kernel.theta, log noise_variance]`` (the last only when the noise
-    variance is learned). With ``profile=True`` (a scaled kernel and no known noise) the
-    kernel variance is maximised out in closed form and ``theta`` is
-    ``[log length_scale, log(noise_variance / variance)]``; :meth:`full_theta` maps back.
-    """
-
-    def __init__(
-        self,
-        x: np.ndarray,
-        r: np.ndarray,
-        kernel: Kernel,
-        known: Noise | None,
-        learn_noise: bool,
-        profile: bool = False,
-    ) -> None:
-        self.x, self.r, self.kernel = x, r, kernel
-        self.n = len(x)
-        self.d = np.subtract.outer(x, x)
-        self.learn_noise = learn_noise
-        self.known = known
-        self.known_matrix = None if known is None else known.dense(self.n)
-        self.profile = bool(profile)
-        if self.profile and not (isinstance(kernel, _Scaled) and known is None and learn_noise):
-            raise ValueError("profiling needs a scaled kernel, no known noise, learned noise")
-
-    @property
-    def dim(self) -> int:
-        if self.profile:
-            return 2
-        return self.kernel.n_params + int(self.learn_noise)
-
-    def _factor(self, Kt: np.ndarray) -> np.ndarray:
-        L, info = lapack.dpotrf(Kt, lower=1, clean=1)
-        if info != 0:
-            L, _ = linalg.cholesky(Kt)
-        return L
-
-    def matrix(self, theta: np.ndarray, grad: bool = False):
-        """Target covariance (n, n) and, with ``grad``, its derivatives (p, n, n)."""
-        theta = np.asarray(theta, dtype=float)
-        if self.profile:
-            raise ValueError("a profiled objective has no full matrix; use full_theta first")
-        p = self.kernel.n_params
-        K, dK = self.kernel.with_theta(theta[:p])._eval(self.d, grad)
-        if self.known_matrix is not None:
-            K = K + self.known_matrix
-        if self.learn_noise:
-            sn2 = np.exp(theta[p])
-            K = K.copy() if self.known_matrix is None else K
-            K.flat[:: self.n + 1] += sn2
-        return K, dK
-
-    def value(self, theta: np.ndarray) -> float:
-        """Log marginal likelihood at ``theta`` (profiled, if so built)."""
-        return self.value_and_grad(theta, grad=False)[0]
-
-    def value_and_grad(self, theta: np.ndarray, grad: bool = True) -> tuple[float, np.ndarray]:
-        """Log marginal likelihood and its gradient with respect to ``theta``."""
-        if self.profile:
-            return self._profiled(np.asarray(theta, dtype=float), grad)
-        n, r = self.n, self.r
-        Kt, dK = self.matrix(theta, grad)
-        L = self._factor(Kt)
-        alpha = linalg.cho_solve(L, r)
-        lml = -0.5 * float(r @ alpha) - 0.5 * linalg.logdet(L) - 0.5 * n * _LOG2PI
-        if not grad:
-            return lml, np.empty(0)
-        # GPML eq. 5.9: d lml / d theta_j = 1/2 tr((alpha alpha^T - Kt^-1) dKt/dtheta_j)
-        W = np.outer(alpha, alpha) - linalg.inverse_from_cholesky(L)
-        g = [0.5 * float(np.vdot(W, dKj)) for dKj in dK]
-        if self.learn_noise:
-            g.append(0.5 * np.exp(theta[-1]) * float(np.trace(W)))
-        return lml, np.asarray(g)
-
-    def _profiled(self, theta: np.ndarray, grad: bool) -> tuple[float, np.ndarray]:
-        # Kt = s2 (R + g I); s2 maximised out: s2 = r^T A^-1 r / n with A = R + g I.
-        n, r = self.n, self.r
-        k = self.kernel.unit(float(np.exp(theta[0])))  # type: ignore[attr-defined]
-        rho, drho = k.correlation(self.d, grad)
-        g = np.exp(theta[1])
-        A = rho  # freshly computed: safe to add the diagonal in place
-        A.flat[:: n + 1] += g
-        L = self._factor(A)
-        alpha = linalg.cho_solve(L, r)
-        q = float(r @ alpha)
-        lml = -0.5 * n * (np.log(q / n) + 1.0 + _LOG2PI) - 0.5 * linalg.logdet(L)
-        if not grad:
-            return lml, np.empty(0)
-        Ainv = linalg.inverse_from_cholesky(L)
-        c = 0.5 * n / q
-        gl = c * float(alpha @ drho @ alpha) - 0.5 * float(np.vdot(Ainv, drho))
-        gg = g * (c * float(alpha @ alpha) - 0.5 * float(np.trace(Ainv)))
-        return lml, np.array([gl, gg])
-
-    def full_theta(self, theta: np.ndarray) -> np.ndarray:
-        """``[kernel.theta, log noise_variance]`` from a (possibly profiled) ``theta``."""
-        theta = np.asarray(theta, dtype=float)
-        if not self.profile:
-            return theta
-        n = self.n
-        k = self.kernel.with_theta(np.array([theta[0], 0.0]))
-        A = k(self.x)
-        A.flat[:: n + 1] += np.exp(theta[1])
-        L = self._factor(A)
-        s2 = float(self.r @ linalg.cho_solve(L, self.r)) / n
-        return np.array([theta[0], np.log(s2), theta[1] + np.log(s2)])
-
-    def bounds(self, user: dict[str, tuple[float, float]] | None = None) -> np.ndarray:
-        """Finite log-space bounds (dim, 2) scaled to the data; ``user`` overrides by name."""
-        x, r = self.x, self.r
-        span = float(np.ptp(x)) or 1.0
-        gaps = np.diff(np.unique(x))
-        gap = float(gaps.min()) if gaps.size else span
-        v = float(np.var(r)) or float(np.mean(r**2)) or 1.0
-        if self.known_matrix is not None:
-            v = max(v, float(np.mean(np.diagonal(self.known_matrix))))
-        rows: dict[str, tuple[float, float]] = {}
-        for name in self.kernel.names:
-            base = name.split("_", 1)[1] if name.startswith(("k1_", "k2_")) else name
-            if base == "length_scale":
-                periodic = isinstance(self.kernel, Periodic)
-                rows[name] = (1e-2, 1e2) if periodic else (max(0.5 * gap, 1e-4 * span), 1e2 * span)
-            elif base == "variance":
-                rows[name] = (1e-6 * v, 1e4 * v)
-            else:
-                rows[name] = (1e-6 * v, 1e4 * v)
-        rows["noise_variance"] = (1e-10 * v, 10.0 * v)
-        for name, lohi in (user or {}).items():
-            if name not in rows:
-                raise InputError(f"bounds: unknown hyperparameter {name!r}; known: {list(rows)}")
-            rows[name] = lohi
-        if self.profile:
-            (l_lo, l_hi) = rows["length_scale"]
-            out = [(l_lo, l_hi), (1e-10, 10.0)]
-        else:
-            out = [rows[name] for name in self.kernel.names]
-            if self.learn_noise:
-                out.append(rows["noise_variance"])
-        b = np.log(np.asarray(out, dtype=float))
-        if not np.all(np.isfinite(b)) or np.any(b[:, 0] > b[:, 1]):
-            raise InputError(f"bounds: expected 0 < lower <= upper, got {out}")
-        return b
 
 
 def log_marginal_likelihood(
@@ -303,6 +157,52 @@ class FittedGP:
         mean, cov = self.predict(x, return_cov=True)
         return Posterior(mean, cov)
 
+    @classmethod
+    def from_arrays(
+        cls,
+        x: object,
+        y: object,
+        *,
+        kernel: Kernel,
+        mean: Mean,
+        noise: Noise | None,
+        noise_variance: float,
+        L: object,
+        alpha: object,
+        jitter: float = 0.0,
+        log_marginal_likelihood: float = float("nan"),
+        optimization: OptimResult | None = None,
+    ) -> FittedGP:
+        """Rebuild a fitted GP from stored arrays (a model file), checking their shapes.
+
+        Predictions use ``L`` and ``alpha`` as given, so they equal the original's exactly.
+
+        Args:
+            x, y: Training positions and targets, shape (n,).
+            L: Lower Cholesky factor of the target covariance, shape (n, n).
+            alpha: Weights, shape (n,).
+
+        Raises:
+            InputError: Mismatched shapes, non-finite values, or an ``L`` that is not lower
+                triangular with a positive diagonal.
+        """
+        xa, ya = check_pair(x, y, ("x", "y"), min_points=1)
+        n = xa.size
+        La = np.array(L, dtype=float)
+        al = as_positions(alpha, "alpha")
+        if La.shape != (n, n) or al.shape != (n,):
+            raise InputError(f"expected L ({n}, {n}) and alpha ({n},), got {La.shape}, {al.shape}")
+        if not np.all(np.isfinite(La)) or np.any(np.triu(La, 1)) or np.any(np.diagonal(La) <= 0):
+            raise InputError("L: expected a finite lower-triangular matrix, positive diagonal")
+        if not (np.isfinite(noise_variance) and noise_variance >= 0):
+            raise InputError(f"noise_variance: expected >= 0, got {noise_variance!r}")
+        if noise is not None:
+            noise.diagonal(n)  # validates the size
+        return cls(
+            xa, ya, kernel, mean, noise, float(noise_variance), La, al, float(jitter),
+            float(log_marginal_likelihood), optimization,
+        )  # fmt: skip
+
 
 def fit_gp(
     x: object,
@@ -376,7 +276,14 @@ def _fit_gp(
         profile = isinstance(kern, _Scaled) and known is None and learn_noise
         obj = Objective(xa, r, kern, known, learn_noise, profile=profile)
         b = obj.bounds(bounds)
-        optimization = maximize(obj.value, obj.value_and_grad, b, n_restarts=n_restarts, rng=rng)
+        optimization = maximize(
+            obj.value,
+            obj.value_and_grad,
+            b,
+            n_restarts=n_restarts,
+            rng=rng,
+            value_grad_hess=obj.value_grad_hess if obj.has_hessian else None,
+        )
         theta = obj.full_theta(optimization.theta)
         p = kern.n_params
         kern = kern.with_theta(theta[:p])

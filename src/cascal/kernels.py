@@ -128,6 +128,10 @@ class _Scaled(Kernel):
         """rho (n, n) at unit variance and d rho / d log length_scale (or None)."""
         raise NotImplementedError
 
+    def correlation2(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """rho, d rho / d log l and d^2 rho / d (log l)^2, each (n, n), at unit variance."""
+        raise NotImplementedError
+
     def _eval(self, d: np.ndarray, grad: bool) -> tuple[np.ndarray, np.ndarray | None]:
         rho, drho = self.correlation(d, grad)
         K = self.variance * rho
@@ -153,6 +157,14 @@ class SquaredExp(_Scaled):
         np.exp(rho, out=rho)
         return rho, (np.multiply(rho, s, out=s) if grad else None)
 
+    def correlation2(self, d):
+        # s = d^2 / l^2, d s / d log l = -2 s: rho' = rho s, rho'' = rho s (s - 2)
+        s = np.square(d)
+        s *= 1.0 / (self.length_scale * self.length_scale)
+        rho = np.exp(-0.5 * s)
+        d1 = rho * s
+        return rho, d1, d1 * (s - 2.0)
+
 
 @dataclass(frozen=True, slots=True)
 class Matern32(_Scaled):
@@ -164,6 +176,13 @@ class Matern32(_Scaled):
         rho = (1.0 + r) * e
         return rho, (r * r * e if grad else None)
 
+    def correlation2(self, d):
+        # d r / d log l = -r: rho' = r^2 e^-r, rho'' = r^2 e^-r (r - 2)
+        r = np.abs(d) * (_SQRT3 / self.length_scale)
+        e = np.exp(-r)
+        d1 = r * r * e
+        return (1.0 + r) * e, d1, d1 * (r - 2.0)
+
 
 @dataclass(frozen=True, slots=True)
 class Matern52(_Scaled):
@@ -174,6 +193,14 @@ class Matern52(_Scaled):
         e = np.exp(-r)
         rho = (1.0 + r + r * r / 3.0) * e
         return rho, ((r * r / 3.0) * (1.0 + r) * e if grad else None)
+
+    def correlation2(self, d):
+        # rho' = r^2 (1 + r) e^-r / 3, rho'' = (r^4 - 2 r^3 - 2 r^2) e^-r / 3
+        r = np.abs(d) * (_SQRT5 / self.length_scale)
+        e = np.exp(-r)
+        r2 = r * r
+        rho = (1.0 + r + r2 / 3.0) * e
+        return rho, r2 * (1.0 + r) * e / 3.0, r2 * (r2 - 2.0 * r - 2.0) * e / 3.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -194,6 +221,12 @@ class Periodic(_Scaled):
         s = 2.0 * (np.sin(np.pi * d / self.period) / self.length_scale) ** 2
         rho = np.exp(-s)
         return rho, (2.0 * s * rho if grad else None)
+
+    def correlation2(self, d):
+        # d s / d log l = -2 s: rho' = 2 s rho, rho'' = 4 s rho (s - 1)
+        s = 2.0 * (np.sin(np.pi * d / self.period) / self.length_scale) ** 2
+        rho = np.exp(-s)
+        return rho, 2.0 * s * rho, 4.0 * s * rho * (s - 1.0)
 
 
 @dataclass(frozen=True, slots=True)

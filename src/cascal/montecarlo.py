@@ -16,6 +16,7 @@ import numpy as np
 from scipy.stats import wilcoxon
 
 from .cascade import METHODS, Cascade
+from .errors import CascalError
 from .gp import FittedGP, single_threaded_blas
 from .simulation import cost_j, j_reference, simulate_trial
 
@@ -79,7 +80,10 @@ def _fit_record(gp: FittedGP) -> dict[str, float]:
 def run_trial(config: StudyConfig, index: int) -> TrialResult:
     """Simulate trial ``index`` and score every method of ``config`` on it."""
     with single_threaded_blas():
-        return _run_trial(config, index)
+        try:
+            return _run_trial(config, index)
+        except CascalError as exc:
+            raise type(exc)(f"trial {index} (seed {config.seed}): {exc}") from exc
 
 
 def _run_trial(config: StudyConfig, index: int) -> TrialResult:

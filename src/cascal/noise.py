@@ -78,11 +78,14 @@ class Dense(Noise):
 
     Args:
         cov: Covariance, shape (n, n), target unit squared.
-        tol: Relative size of negative eigenvalues accepted as round-off.
+        tol: Size of negative eigenvalues accepted as round-off, relative to the largest.
+        atol: Absolute size accepted as round-off; a posterior covariance ``K** - V^T V``
+            carries round-off of order eps times the prior variance, whatever its own size.
     """
 
     cov: np.ndarray
     tol: float = 1e-8
+    atol: float = 0.0
     n_clipped: int = field(default=0, init=False)
     min_eigenvalue: float = field(default=0.0, init=False)
     is_diagonal = False  # type: ignore[misc]
@@ -103,7 +106,7 @@ class Dense(Noise):
         C = 0.5 * (C + C.T)
         w, V = np.linalg.eigh(C) if C.size else (np.zeros(0), C)
         wmin = float(w.min()) if w.size else 0.0
-        if wmin < -self.tol * max(float(w.max()), np.finfo(float).tiny):
+        if wmin < -max(self.tol * float(w.max()), self.atol, np.finfo(float).tiny):
             raise InputError(
                 f"dense noise: expected a positive semi-definite covariance, got an eigenvalue "
                 f"of {wmin:.3g} against a largest of {float(w.max()):.3g}"

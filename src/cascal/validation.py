@@ -2,11 +2,20 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .errors import InputError
 
-__all__ = ["MIN_POINTS", "as_positions", "check_increasing", "check_pair"]
+__all__ = [
+    "MIN_POINTS",
+    "Repeats",
+    "aggregate_repeats",
+    "as_positions",
+    "check_increasing",
+    "check_pair",
+]
 
 #: Fewest points a stage fit accepts.
 MIN_POINTS = 3
@@ -80,3 +89,48 @@ def check_increasing(x: np.ndarray, y: np.ndarray, names: tuple[str, str] = ("x"
             f"{names[1]}={yn!r} (index {idx[k + 1]}); the two sensors must be related "
             "one-to-one (the paper's bijectivity assumption)"
         )
+
+
+@dataclass(frozen=True, slots=True)
+class Repeats:
+    """Readings averaged per position (see :func:`aggregate_repeats`).
+
+    Attributes:
+        x: Distinct positions, increasing, shape (k,).
+        y: Mean of the targets read at each position, shape (k,).
+        noise: Variance of that mean, ``s^2 / count`` (0 where count is 1), shape (k,).
+        counts: Readings per position, shape (k,).
+        first: Index of each position's first reading in the input, shape (k,).
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    noise: np.ndarray
+    counts: np.ndarray
+    first: np.ndarray
+
+
+def aggregate_repeats(x: object, y: object, names: tuple[str, str] = ("x", "y")) -> Repeats:
+    """Average repeated readings: one point per distinct ``x``, its spread as known noise.
+
+    The target of a position read ``c`` times is the mean of its ``y``; its known noise is
+    the variance of that mean, ``s^2 / c`` with the sample variance ``s^2`` (ddof 1). A
+    position read once gets 0: the learned white-noise variance covers it.
+
+    Args:
+        x: Readings of the sensor being calibrated, shape (n,); repeats are exactly equal.
+        y: Readings of the more accurate sensor, shape (n,), same unit.
+    """
+    xa = as_positions(x, names[0])
+    ya = as_positions(y, names[1])
+    if xa.shape != ya.shape:
+        raise InputError(
+            f"{names[0]} and {names[1]}: expected the same length, got {xa.size} and {ya.size}"
+        )
+    ux, first, inverse, counts = np.unique(
+        xa, return_index=True, return_inverse=True, return_counts=True
+    )
+    ym = np.bincount(inverse, weights=ya, minlength=ux.size) / counts
+    ss = np.bincount(inverse, weights=(ya - ym[inverse]) ** 2, minlength=ux.size)
+    noise = np.where(counts > 1, ss / np.maximum(counts - 1, 1) / counts, 0.0)
+    return Repeats(ux, ym, noise, counts, first)

@@ -1,0 +1,258 @@
+"""The log marginal likelihood of one stage as a function of log-hyperparameters.
+
+:class:`Objective` evaluates GPML eq. 2.30 with the target covariance
+``K(theta) + N + noise_variance * I`` (``N`` a known, possibly dense noise), its gradient
+(GPML eq. 5.9) and, for the scaled kernels, its exact Hessian for Newton steps. With the
+kernel variance profiled out in closed form the search has one dimension less.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import lapack
+
+from . import linalg
+from .errors import InputError
+from .kernels import Kernel, Periodic, _Scaled
+from .noise import Noise
+
+__all__ = ["Objective"]
+
+_LOG2PI = np.log(2.0 * np.pi)
+
+
+class Objective:
+    """Log marginal likelihood of one data set as a function of log-hyperparameters.
+
+    ``theta`` is ``[kernel.theta, log noise_variance]`` (the last only when the noise
+    variance is learned). With ``profile=True`` (a scaled kernel and no known noise) the
+    kernel variance is maximised out in closed form and ``theta`` is
+    ``[log length_scale, log(noise_variance / variance)]``; :meth:`full_theta` maps back.
+    """
+
+    def __init__(
+        self,
+        x: np.ndarray,
+        r: np.ndarray,
+        kernel: Kernel,
+        known: Noise | None,
+        learn_noise: bool,
+        profile: bool = False,
+    ) -> None:
+        self.x, self.r, self.kernel = x, r, kernel
+        self.n = len(x)
+        self.d = np.subtract.outer(x, x)
+        self.learn_noise = learn_noise
+        self.known = known
+        self.known_matrix = None if known is None else known.dense(self.n)
+        self.profile = bool(profile)
+        if self.profile and not (isinstance(kernel, _Scaled) and known is None and learn_noise):
+            raise ValueError("profiling needs a scaled kernel, no known noise, learned noise")
+
+    @property
+    def dim(self) -> int:
+        if self.profile:
+            return 2
+        return self.kernel.n_params + int(self.learn_noise)
+
+    def _factor(self, Kt: np.ndarray) -> np.ndarray:
+        L, info = lapack.dpotrf(Kt, lower=1, clean=1)
+        if info != 0:
+            L, _ = linalg.cholesky(Kt)
+        return L
+
+    def matrix(self, theta: np.ndarray, grad: bool = False):
+        """Target covariance (n, n) and, with ``grad``, its derivatives (p, n, n)."""
+        theta = np.asarray(theta, dtype=float)
+        if self.profile:
+            raise ValueError("a profiled objective has no full matrix; use full_theta first")
+        p = self.kernel.n_params
+        K, dK = self.kernel.with_theta(theta[:p])._eval(self.d, grad)
+        if self.known_matrix is not None:
+            K = K + self.known_matrix
+        if self.learn_noise:
+            sn2 = np.exp(theta[p])
+            K = K.copy() if self.known_matrix is None else K
+            K.flat[:: self.n + 1] += sn2
+        return K, dK
+
+    def value(self, theta: np.ndarray) -> float:
+        """Log marginal likelihood at ``theta`` (profiled, if so built)."""
+        return self.value_and_grad(theta, grad=False)[0]
+
+    def value_and_grad(self, theta: np.ndarray, grad: bool = True) -> tuple[float, np.ndarray]:
+        """Log marginal likelihood and its gradient with respect to ``theta``."""
+        if self.profile:
+            return self._profiled(np.asarray(theta, dtype=float), grad)
+        n, r = self.n, self.r
+        Kt, dK = self.matrix(theta, grad)
+        L = self._factor(Kt)
+        alpha = linalg.cho_solve(L, r)
+        lml = -0.5 * float(r @ alpha) - 0.5 * linalg.logdet(L) - 0.5 * n * _LOG2PI
+        if not grad:
+            return lml, np.empty(0)
+        # GPML eq. 5.9: d lml / d theta_j = 1/2 tr((alpha alpha^T - Kt^-1) dKt/dtheta_j)
+        W = np.outer(alpha, alpha) - linalg.inverse_from_cholesky(L)
+        g = [0.5 * float(np.vdot(W, dKj)) for dKj in dK]
+        if self.learn_noise:
+            g.append(0.5 * np.exp(theta[-1]) * float(np.trace(W)))
+        return lml, np.asarray(g)
+
+    def _profiled(self, theta: np.ndarray, grad: bool) -> tuple[float, np.ndarray]:
+        # Kt = s2 (R + g I); s2 maximised out: s2 = r^T A^-1 r / n with A = R + g I.
+        n, r = self.n, self.r
+        k = self.kernel.unit(float(np.exp(theta[0])))  # type: ignore[attr-defined]
+        rho, drho = k.correlation(self.d, grad)
+        g = np.exp(theta[1])
+        A = rho  # freshly computed: safe to add the diagonal in place
+        A.flat[:: n + 1] += g
+        L = self._factor(A)
+        alpha = linalg.cho_solve(L, r)
+        q = float(r @ alpha)
+        lml = -0.5 * n * (np.log(q / n) + 1.0 + _LOG2PI) - 0.5 * linalg.logdet(L)
+        if not grad:
+            return lml, np.empty(0)
+        Ainv = linalg.inverse_from_cholesky(L)
+        c = 0.5 * n / q
+        gl = c * float(alpha @ drho @ alpha) - 0.5 * float(np.vdot(Ainv, drho))
+        gg = g * (c * float(alpha @ alpha) - 0.5 * float(np.trace(Ainv)))
+        return lml, np.array([gl, gg])
+
+    @property
+    def has_hessian(self) -> bool:
+        """True when :meth:`value_grad_hess` is available (scaled kernels)."""
+        return isinstance(self.kernel, _Scaled)
+
+    def value_grad_hess(self, theta: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """Log marginal likelihood, gradient (p,) and exact Hessian (p, p) at ``theta``.
+
+        Uses d^2 lml / d theta_i d theta_j = 1/2 a^T K_ij a - a^T K_i Kt^-1 K_j a
+        + 1/2 tr(Kt^-1 K_i Kt^-1 K_j) - 1/2 tr(Kt^-1 K_ij), a = Kt^-1 r (K_i = dKt/dtheta_i).
+        """
+        theta = np.asarray(theta, dtype=float)
+        if self.profile:
+            return self._profiled_hess(theta)
+        n, r = self.n, self.r
+        k = self.kernel.unit(float(np.exp(theta[0])))  # type: ignore[attr-defined]
+        rho, r1, r2 = k.correlation2(self.d)
+        sf2 = float(np.exp(theta[1]))
+        Kt = sf2 * rho
+        if self.known_matrix is not None:
+            Kt += self.known_matrix
+        sn2 = float(np.exp(theta[2])) if self.learn_noise else 0.0
+        Kt.flat[:: n + 1] += sn2
+        L = self._factor(Kt)
+        a = linalg.cho_solve(L, r)
+        lml = -0.5 * float(r @ a) - 0.5 * linalg.logdet(L) - 0.5 * n * _LOG2PI
+        Kinv = linalg.inverse_from_cholesky(L)
+        # dK/dtheta: sf2 r1, sf2 rho, sn2 I; second: K_ll = sf2 r2, K_ls = sf2 r1, K_ss = sf2 rho,
+        # K_nn = sn2 I, others 0.
+        K1, K2 = sf2 * r1, sf2 * rho
+        M1, M2 = Kinv @ K1, Kinv @ K2
+        v = [K1 @ a, K2 @ a]
+        M = [M1, M2]
+        tr = [float(np.trace(M1)), float(np.trace(M2))]
+        if self.learn_noise:
+            v.append(sn2 * a)
+            M.append(sn2 * Kinv)
+            tr.append(sn2 * float(np.trace(Kinv)))
+        p = len(v)
+        w = [Kinv @ vi for vi in v]
+        g = np.array([0.5 * float(a @ v[i]) - 0.5 * tr[i] for i in range(p)])
+        H = np.empty((p, p))
+        for i in range(p):
+            for j in range(i, p):
+                H[i, j] = H[j, i] = -float(v[i] @ w[j]) + 0.5 * float(np.vdot(M[i], M[j].T))
+        # second-derivative terms: 1/2 a^T K_ij a - 1/2 tr(Kt^-1 K_ij)
+        H[0, 0] += 0.5 * sf2 * (float(a @ (r2 @ a)) - float(np.vdot(Kinv, r2)))
+        H[0, 1] += g[0]
+        H[1, 0] += g[0]
+        H[1, 1] += g[1]
+        if self.learn_noise:
+            H[2, 2] += g[2]
+        return lml, g, H
+
+    def _profiled_hess(self, theta: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        # P = -n/2 log q - 1/2 log|A| + c, q = r^T A^-1 r, A = rho + g I, a_i = alpha^T A_i alpha.
+        n, r = self.n, self.r
+        k = self.kernel.unit(float(np.exp(theta[0])))  # type: ignore[attr-defined]
+        rho, r1, r2 = k.correlation2(self.d)
+        gn = float(np.exp(theta[1]))
+        A = rho
+        A.flat[:: n + 1] += gn
+        L = self._factor(A)
+        al = linalg.cho_solve(L, r)
+        q = float(r @ al)
+        lml = -0.5 * n * (np.log(q / n) + 1.0 + _LOG2PI) - 0.5 * linalg.logdet(L)
+        Ainv = linalg.inverse_from_cholesky(L)
+        M1 = Ainv @ r1
+        v1, v2 = r1 @ al, gn * al
+        w1, w2 = Ainv @ v1, gn * (Ainv @ al)
+        a1, a2 = float(al @ v1), float(al @ v2)
+        t1, t2 = float(np.trace(M1)), gn * float(np.trace(Ainv))
+        c = 0.5 * n / q
+        g = np.array([c * a1 - 0.5 * t1, c * a2 - 0.5 * t2])
+        # d a_i / d theta_j = alpha^T A_ij alpha - 2 alpha^T A_i A^-1 A_j alpha
+        da11 = float(al @ (r2 @ al)) - 2.0 * float(v1 @ w1)
+        da12 = -2.0 * float(v1 @ w2)
+        da22 = a2 - 2.0 * float(v2 @ w2)
+        tr11 = float(np.vdot(M1, M1.T)) - float(np.vdot(Ainv, r2))
+        tr12 = gn * float(np.vdot(M1, Ainv))
+        tr22 = gn * gn * float(np.vdot(Ainv, Ainv)) - t2
+        H = np.array(
+            [
+                [c * (da11 + a1 * a1 / q) + 0.5 * tr11, c * (da12 + a1 * a2 / q) + 0.5 * tr12],
+                [0.0, c * (da22 + a2 * a2 / q) + 0.5 * tr22],
+            ]
+        )
+        H[1, 0] = H[0, 1]
+        return lml, g, H
+
+    def full_theta(self, theta: np.ndarray) -> np.ndarray:
+        """``[kernel.theta, log noise_variance]`` from a (possibly profiled) ``theta``."""
+        theta = np.asarray(theta, dtype=float)
+        if not self.profile:
+            return theta
+        n = self.n
+        k = self.kernel.with_theta(np.array([theta[0], 0.0]))
+        A = k(self.x)
+        A.flat[:: n + 1] += np.exp(theta[1])
+        L = self._factor(A)
+        s2 = float(self.r @ linalg.cho_solve(L, self.r)) / n
+        return np.array([theta[0], np.log(s2), theta[1] + np.log(s2)])
+
+    def bounds(self, user: dict[str, tuple[float, float]] | None = None) -> np.ndarray:
+        """Finite log-space bounds (dim, 2) scaled to the data; ``user`` overrides by name."""
+        x, r = self.x, self.r
+        span = float(np.ptp(x)) or 1.0
+        gaps = np.diff(np.unique(x))
+        gap = float(gaps.min()) if gaps.size else span
+        v = float(np.var(r)) or float(np.mean(r**2)) or 1.0
+        if self.known_matrix is not None:
+            v = max(v, float(np.mean(np.diagonal(self.known_matrix))))
+        rows: dict[str, tuple[float, float]] = {}
+        for name in self.kernel.names:
+            base = name.split("_", 1)[1] if name.startswith(("k1_", "k2_")) else name
+            if base == "length_scale":
+                periodic = isinstance(self.kernel, Periodic)
+                rows[name] = (1e-2, 1e2) if periodic else (max(0.5 * gap, 1e-4 * span), 1e2 * span)
+            elif base == "variance":
+                rows[name] = (1e-6 * v, 1e4 * v)
+            else:
+                rows[name] = (1e-6 * v, 1e4 * v)
+        rows["noise_variance"] = (1e-10 * v, 10.0 * v)
+        for name, lohi in (user or {}).items():
+            if name not in rows:
+                raise InputError(f"bounds: unknown hyperparameter {name!r}; known: {list(rows)}")
+            rows[name] = lohi
+        if self.profile:
+            (l_lo, l_hi) = rows["length_scale"]
+            out = [(l_lo, l_hi), (1e-10, 10.0)]
+        else:
+            out = [rows[name] for name in self.kernel.names]
+            if self.learn_noise:
+                out.append(rows["noise_variance"])
+        b = np.log(np.asarray(out, dtype=float))
+        if not np.all(np.isfinite(b)) or np.any(b[:, 0] > b[:, 1]):
+            raise InputError(f"bounds: expected 0 < lower <= upper, got {out}")
+        return b
