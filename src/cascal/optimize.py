@@ -23,7 +23,7 @@ __all__ = ["OptimResult", "Start", "latin_hypercube", "maximize", "newton_maximi
 #: Starts are at least this far apart in the unit box of the log bounds.
 _RADIUS = 0.2
 #: First trust radius of a Newton run, log units.
-_RADIUS0 = 1.0
+_RADIUS0 = 2.0
 
 
 @dataclass(frozen=True, slots=True)

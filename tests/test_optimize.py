@@ -1,0 +1,89 @@
+"""Multi-start maximisation: Newton steps and L-BFGS-B reach the same optima."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cascal.kernels import Matern52, SquaredExp
+from cascal.likelihood import Objective
+from cascal.noise import Dense
+from cascal.optimize import latin_hypercube, maximize, newton_maximize
+
+
+def quadratic(center, A):
+    def vgh(t):
+        d = t - center
+        return -0.5 * float(d @ A @ d), -(A @ d), -A
+
+    return vgh
+
+
+def test_newton_finds_interior_maximum_of_a_quadratic():
+    A = np.array([[3.0, 1.0], [1.0, 2.0]])
+    c = np.array([0.3, -0.7])
+    bounds = np.array([[-5.0, 5.0], [-5.0, 5.0]])
+    s = newton_maximize(quadratic(c, A), np.array([4.0, 4.0]), bounds)
+    assert s.converged
+    np.testing.assert_allclose(s.theta, c, atol=1e-10)
+    assert s.n_evals <= 6  # a quadratic takes one full Newton step once inside the radius
+
+
+def test_newton_stops_at_an_active_bound():
+    A = np.eye(2)
+    c = np.array([2.0, 0.5])
+    bounds = np.array([[-1.0, 1.0], [-1.0, 1.0]])
+    s = newton_maximize(quadratic(c, A), np.zeros(2), bounds)
+    np.testing.assert_allclose(s.theta, [1.0, 0.5], atol=1e-9)
+
+
+def test_newton_escapes_a_saddle_region():
+    # f = -(x^2 - 1)^2 - y^2 has maxima at x = +-1; x = 0 is a local minimum in x.
+    def vgh(t):
+        x, y = t
+        f = -((x * x - 1) ** 2) - y * y
+        g = np.array([-4 * x * (x * x - 1), -2 * y])
+        H = np.array([[-12 * x * x + 4, 0.0], [0.0, -2.0]])
+        return f, g, H
+
+    s = newton_maximize(vgh, np.array([0.05, 1.0]), np.array([[-3.0, 3.0], [-3.0, 3.0]]))
+    # stops once the Newton decrement promises < 2e-10 gain: |x - 1| ~ sqrt(2e-10 / 8)
+    assert s.value > -2e-10
+    np.testing.assert_allclose(np.abs(s.theta), [1.0, 0.0], atol=2e-5)
+
+
+def test_latin_hypercube_is_stratified():
+    rng = np.random.default_rng(0)
+    b = np.array([[0.0, 1.0], [-2.0, 2.0]])
+    pts = latin_hypercube(b, 10, rng)
+    assert pts.shape == (10, 2)
+    for k in range(2):
+        u = (pts[:, k] - b[k, 0]) / (b[k, 1] - b[k, 0])
+        assert sorted(np.floor(u * 10).astype(int)) == list(range(10))
+
+
+@pytest.mark.parametrize("kernel", [SquaredExp(), Matern52()])
+@pytest.mark.parametrize("profile", [True, False])
+def test_newton_and_lbfgsb_reach_the_same_optimum(kernel, profile):
+    rng = np.random.default_rng(3)
+    x = np.sort(rng.uniform(0, 1, 40))
+    y = x + 0.01 * np.sin(9 * x) + 1e-3 * rng.standard_normal(40)
+    known = None
+    if not profile:
+        B = 1e-3 * rng.standard_normal((40, 4))
+        known = Dense(B @ B.T)
+    obj = Objective(x, y - x, kernel, known, True, profile=profile)
+    b = obj.bounds()
+    newton = maximize(
+        obj.value,
+        obj.value_and_grad,
+        b,
+        n_restarts=5,
+        rng=np.random.default_rng(0),
+        value_grad_hess=obj.value_grad_hess,
+    )
+    lbfgs = maximize(obj.value, obj.value_and_grad, b, n_restarts=5, rng=np.random.default_rng(0))
+    assert newton.value >= lbfgs.value - 1e-6
+    assert all(s.converged for s in newton.starts)
+    best = max(newton.starts, key=lambda s: s.value)
+    np.testing.assert_array_equal(best.theta, newton.theta)
