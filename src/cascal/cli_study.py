@@ -94,7 +94,7 @@ def add_study_parser(sub) -> None:
     p = sub.add_parser("study", help="run the paper's Monte Carlo study (resumable)")
     p.add_argument("--trials", type=int, default=12000, help="number of trials (12000)")
     p.add_argument("--seed", type=int, default=0, help="root seed (0)")
-    p.add_argument("--restarts", type=int, default=2, help="L-BFGS-B starts per GP fit (2)")
+    p.add_argument("--restarts", type=int, default=3, help="optimiser starts per GP fit (3)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=None, help="local processes (CPU count)")
     where.add_argument(
