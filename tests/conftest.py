@@ -1,0 +1,20 @@
+"""Fixtures shared by the core tests: the float64 ``assert_allclose`` helper and seeded data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from utils import assert_allclose as _assert_allclose
+
+
+@pytest.fixture
+def assert_allclose():
+    """The float64 ``assert_allclose`` of :mod:`utils` as a fixture."""
+    return _assert_allclose
+
+
+@pytest.fixture
+def rng():
+    """A fixed-seed generator, fresh for every test."""
+    return np.random.default_rng(20230710)

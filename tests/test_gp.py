@@ -1,0 +1,439 @@
+"""GP regression against GPML's dense formulas: posterior, log marginal likelihood, gradients,
+profiling, hyperparameter recovery and the fitted state."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cascal import FittedGP, Posterior, fit_gp, log_marginal_likelihood
+from cascal.gp import Objective
+from cascal.kernels import Constant, Matern32, Matern52, Periodic, SquaredExp
+from cascal.noise import Dense, Diagonal
+from utils import assert_allclose, dense_lml, dense_posterior, fd_gradient, se
+
+L0, V0, SN0 = 0.2, 1e-4, 1e-6  # hyperparameters of the posterior tests
+N = 20
+
+
+@pytest.fixture
+def data():
+    g = np.random.default_rng(11)
+    x = np.sort(g.random(N))
+    y = x + 0.01 * np.sin(7 * x) + 0.004 * np.cos(17 * x) + 1e-3 * g.normal(size=N)
+    return x, y
+
+
+@pytest.fixture
+def vec():
+    return np.linspace(0.5e-6, 3e-6, N)
+
+
+@pytest.fixture
+def dense(data):
+    x, _ = data
+    # exponential (Ornstein-Uhlenbeck) correlation: correlated and positive definite
+    return 2e-6 * np.exp(-np.abs(x[:, None] - x[None, :]) / 0.15)
+
+
+def _fit_and_noise(form, data, vec, dense):
+    """A FittedGP at given hyperparameters and the dense target-noise matrix it should use."""
+    x, y = data
+    hp = {"length_scale": L0, "variance": V0}
+    if form == "learned":
+        fit = fit_gp(x, y, kernel="se", hyperparameters={**hp, "noise_variance": SN0})
+        return fit, SN0 * np.eye(N)
+    if form == "vector":
+        fit = fit_gp(x, y, kernel="se", noise=vec, hyperparameters=hp)
+        return fit, np.diag(vec)
+    if form == "vector+learned":
+        fit = fit_gp(
+            x, y, noise=vec, learn_noise=True, hyperparameters={**hp, "noise_variance": SN0}
+        )
+        return fit, np.diag(vec) + SN0 * np.eye(N)
+    if form == "dense":
+        fit = fit_gp(x, y, kernel="se", noise=dense, hyperparameters={**hp, "noise_variance": SN0})
+        return fit, dense + SN0 * np.eye(N)
+    raise AssertionError(form)
+
+
+FORMS = ["learned", "vector", "vector+learned", "dense"]
+XS = np.linspace(-0.2, 1.2, 37)
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_posterior_against_dense_formula(form, data, vec, dense):
+    x, y = data
+    fit, Nmat = _fit_and_noise(form, data, vec, dense)
+    assert isinstance(fit, FittedGP)
+    # GPML Alg. 2.1 with the identity prior mean m(x) = x
+    mean, cov = dense_posterior(
+        se(x, x, L0, V0), se(XS, x, L0, V0), se(XS, XS, L0, V0), Nmat, y - x, XS
+    )
+    got_mean, got_cov = fit.predict(XS, return_cov=True)
+    assert_allclose(got_mean, mean, rtol=1e-11, atol=1e-13)
+    assert_allclose(got_cov, cov, rtol=0, atol=1e-10 * V0)
+    assert_allclose(got_cov, got_cov.T, rtol=0)
+    m2, std = fit.predict(XS, return_std=True)
+    assert_allclose(m2, mean, rtol=1e-11, atol=1e-13)
+    assert_allclose(std, np.sqrt(np.clip(np.diagonal(cov), 0, None)), rtol=1e-7, atol=1e-9)
+    assert_allclose(fit.predict(XS), mean, rtol=1e-11, atol=1e-13)
+    post = fit.posterior(XS)
+    assert isinstance(post, Posterior)
+    assert_allclose(post.mean, mean, rtol=1e-11, atol=1e-13)
+    assert_allclose(post.std, std, rtol=1e-12, atol=1e-15)
+    # stored state: weights alpha = Kt^-1 (y - m(x)), L L^T = Kt
+    Kt = se(x, x, L0, V0) + Nmat
+    assert_allclose(fit.alpha, np.linalg.solve(Kt, y - x), rtol=1e-9)
+    assert_allclose(fit.L @ fit.L.T, Kt, rtol=1e-12, atol=1e-20)
+    assert fit.optimization is None
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_log_marginal_likelihood_against_dense_formula(form, data, vec, dense):
+    x, y = data
+    fit, Nmat = _fit_and_noise(form, data, vec, dense)
+    expected = dense_lml(y - x, se(x, x, L0, V0) + Nmat)
+    assert fit.log_marginal_likelihood == pytest.approx(expected, rel=1e-12)
+    known = {"learned": None, "vector": vec, "vector+learned": vec, "dense": dense}[form]
+    sn2 = 0.0 if form == "vector" else SN0
+    value = log_marginal_likelihood(
+        x, y, kernel=SquaredExp(L0, V0), noise=known, noise_variance=sn2
+    )
+    assert value == pytest.approx(expected, rel=1e-12)
+
+
+def test_log_marginal_likelihood_not_trivially_constant(data):
+    # the check above would be void if the value ignored its hyperparameters
+    x, y = data
+    a = log_marginal_likelihood(x, y, kernel=SquaredExp(L0, V0), noise_variance=SN0)
+    b = log_marginal_likelihood(x, y, kernel=SquaredExp(L0, V0), noise_variance=4 * SN0)
+    c = log_marginal_likelihood(x, y, kernel=SquaredExp(2 * L0, V0), noise_variance=SN0)
+    assert abs(a - b) > 1.0 and abs(a - c) > 1.0
+
+
+KERNELS = {
+    "se": SquaredExp(0.15, 2e-4),
+    "matern32": Matern32(0.3, 5e-5),
+    "matern52": Matern52(0.25, 1e-4),
+    "periodic": Periodic(0.9, 1e-4, period=0.7),
+    "const+se": Constant(3e-5) + SquaredExp(0.2, 1e-4),
+    "se*periodic": SquaredExp(0.5, 1e-2) * Periodic(1.2, 0.02, period=0.4),
+    "number*matern52": 3.0 * Matern52(0.2, 4e-5),
+}
+NOISES = [("none", True), ("vector", False), ("vector", True), ("dense", True), ("dense", False)]
+
+
+@pytest.mark.parametrize("kname", sorted(KERNELS))
+@pytest.mark.parametrize(("nform", "learn"), NOISES)
+def test_objective_value_and_gradient(kname, nform, learn, data, vec, dense):
+    x, y = data
+    r = y - x
+    kernel = KERNELS[kname]
+    known = {"none": None, "vector": Diagonal(vec), "dense": Dense(dense)}[nform]
+    Nknown = np.zeros((N, N)) if known is None else known.dense(N)
+    obj = Objective(x, r, kernel, known, learn)
+    p = kernel.n_params
+    assert obj.dim == p + int(learn)
+
+    def full(theta):
+        Kt = kernel.with_theta(theta[:p])(x) + Nknown
+        if learn:
+            Kt = Kt + np.exp(theta[p]) * np.eye(N)
+        return dense_lml(r, Kt)
+
+    theta = np.r_[kernel.theta, np.log(3e-6)] if learn else kernel.theta
+    value, grad = obj.value_and_grad(theta)
+    assert value == pytest.approx(full(theta), rel=1e-11)
+    assert obj.value(theta) == pytest.approx(value, rel=1e-14)
+    assert grad.shape == (obj.dim,)
+    fd = fd_gradient(full, theta, h=1e-5)
+    # central differences: O(h^2) truncation and ~eps |lml| / h round-off, both far below 1e-6
+    assert_allclose(grad, fd, rtol=1e-6, atol=1e-6 * max(1.0, np.max(np.abs(fd))))
+    assert np.max(np.abs(grad)) > 1e-2  # a point away from the optimum: the check has teeth
+
+
+@pytest.mark.parametrize("nform", ["none", "vector", "dense"])
+def test_log_marginal_likelihood_eval_gradient(nform, data, vec, dense):
+    x, y = data
+    known = {"none": None, "vector": vec, "dense": dense}[nform]
+    Nknown = {"none": np.zeros((N, N)), "vector": np.diag(vec), "dense": dense}[nform]
+    k = Matern52(0.25, 1e-4)
+
+    def full(theta):
+        Kt = k.with_theta(theta[:2])(x) + Nknown + np.exp(theta[2]) * np.eye(N)
+        return dense_lml(y - x, Kt)
+
+    theta = np.r_[k.theta, np.log(2e-6)]
+    v, g = log_marginal_likelihood(
+        x, y, kernel=k, noise=known, noise_variance=2e-6, eval_gradient=True
+    )
+    assert g.shape == (3,)
+    assert v == pytest.approx(full(theta), rel=1e-11)
+    fd = fd_gradient(full, theta)
+    assert_allclose(g, fd, rtol=1e-6, atol=1e-6 * np.max(np.abs(fd)))
+
+
+def _profiled_dense(kernel, x, r, theta2):
+    """Profiled LML by hand: s2 = r^T A^-1 r / n, A = R + g I, then the full dense LML."""
+    R = kernel.with_theta(np.array([theta2[0], 0.0]))(x)
+    A = R + np.exp(theta2[1]) * np.eye(len(x))
+    s2 = float(r @ np.linalg.solve(A, r)) / len(x)
+    return dense_lml(r, s2 * A), s2
+
+
+PROFILE_KERNELS = ["se", "matern32", "matern52", "periodic"]
+
+
+@pytest.mark.parametrize("kname", PROFILE_KERNELS)
+def test_profiled_objective(kname, data):
+    x, y = data
+    r = y - x
+    kernel = KERNELS[kname]
+    prof = Objective(x, r, kernel, None, True, profile=True)
+    full = Objective(x, r, kernel, None, True)
+    assert prof.dim == 2
+    theta2 = np.array([np.log(0.3), np.log(0.05)])
+    expected, s2 = _profiled_dense(kernel, x, r, theta2)
+    value, grad = prof.value_and_grad(theta2)
+    assert value == pytest.approx(expected, rel=1e-11)
+    ft = prof.full_theta(theta2)
+    assert_allclose(ft, [theta2[0], np.log(s2), theta2[1] + np.log(s2)], rtol=1e-12)
+    # the profiled value is the full objective at full_theta, and the overall scale is
+    # optimal: scaling variance and noise variance together (d log s2 = d log sn2) is flat
+    fv, fg = full.value_and_grad(ft)
+    assert fv == pytest.approx(value, rel=1e-11)
+    assert abs(fg[1] + fg[2]) < 1e-9 * np.max(np.abs(fg))
+    assert np.max(np.abs(fg)) > 1e-2
+    fd = fd_gradient(lambda t: _profiled_dense(kernel, x, r, t)[0], theta2)
+    assert_allclose(grad, fd, rtol=1e-6, atol=1e-6 * np.max(np.abs(fd)))
+    # zero profiled gradient <=> zero full gradient: d P / d log l = d F / d log l and
+    # d P / d log g = d F / d log noise_variance at full_theta
+    assert_allclose(grad, fg[[0, 2]], rtol=1e-8, atol=1e-9 * np.max(np.abs(grad)))
+
+
+def test_profile_needs_plain_problem(data, vec):
+    x, y = data
+    with pytest.raises(ValueError, match="profiling needs"):
+        Objective(x, y - x, SquaredExp(), Diagonal(vec), True, profile=True)
+    with pytest.raises(ValueError, match="profiling needs"):
+        Objective(x, y - x, Constant(1.0) + SquaredExp(), None, True, profile=True)
+
+
+def test_profiled_optimum_has_zero_full_gradient(data):
+    x, y = data
+    fit = fit_gp(x, y, kernel="se", seed=3)
+    assert fit.optimization is not None
+    full = Objective(x, y - x, SquaredExp(), None, True)
+    theta = np.r_[fit.kernel.theta, np.log(fit.noise_variance)]
+    b = full.bounds()
+    assert np.all((theta > b[:, 0] + 0.1) & (theta < b[:, 1] - 0.1)), "optimum on a bound"
+    value, grad = full.value_and_grad(theta)
+    assert value == pytest.approx(fit.log_marginal_likelihood, rel=1e-10)
+    assert value == pytest.approx(fit.optimization.value, rel=1e-10)
+    # L-BFGS-B stops at a projected gradient of 1e-5 on the unit box (log-widths ~10) or on
+    # a relative LML change of ~2e-9: |gradient| well below 1e-2 in log space; a step of 0.3
+    # in any log-hyperparameter changes the gradient by orders of magnitude more.
+    assert np.max(np.abs(grad)) < 1e-2
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = 0.3
+        assert np.max(np.abs(full.value_and_grad(theta + e)[1])) > 0.5
+
+
+def test_fit_recovers_hyperparameters_of_a_gp_sample():
+    g = np.random.default_rng(2024)
+    n, l, v, sn2 = 300, 0.5, 1.0, 0.01
+    x = np.sort(g.uniform(0.0, 10.0, n))
+    f = np.linalg.cholesky(se(x, x, l, v) + 1e-10 * np.eye(n)) @ g.normal(size=n)
+    y = f + np.sqrt(sn2) * g.normal(size=n)
+    fit = fit_gp(x, y, kernel="se", mean="zero", seed=0)
+    hp = fit.hyperparameters
+    # 10 units / l = 20 correlation lengths: the variance is estimated from ~20 effectively
+    # independent values (relative sd ~ sqrt(2/20) = 0.3), so allow a factor of 2; the length
+    # scale is better determined (curvature of the whole sample), allow 30 %; the noise
+    # variance comes from 300 residuals (relative sd ~ 0.08), allow 30 %.
+    assert hp["length_scale"] == pytest.approx(l, rel=0.3)
+    assert 0.5 * v < hp["variance"] < 2.0 * v
+    assert hp["noise_variance"] == pytest.approx(sn2, rel=0.3)
+    assert fit.jitter == 0.0
+
+
+def test_fit_beats_random_hyperparameters(data):
+    x, y = data
+    fit = fit_gp(x, y, kernel="matern52", seed=1)
+    b = Objective(x, y - x, Matern52(), None, True).bounds()
+    g = np.random.default_rng(5)
+    for theta in b[:, 0] + g.random((25, 3)) * (b[:, 1] - b[:, 0]):
+        k = Matern52().with_theta(theta[:2])
+        other = log_marginal_likelihood(x, y, kernel=k, noise_variance=float(np.exp(theta[2])))
+        assert fit.log_marginal_likelihood >= other
+    # and the recorded value is the LML at the fitted hyperparameters
+    again = log_marginal_likelihood(x, y, kernel=fit.kernel, noise_variance=fit.noise_variance)
+    assert fit.log_marginal_likelihood == pytest.approx(again, rel=1e-12)
+
+
+def test_fit_with_known_dense_noise_is_optimal(data, dense):
+    x, y = data
+    fit = fit_gp(x, y, kernel="se", noise=dense, seed=2, n_restarts=3)
+    assert fit.noise is not None and not fit.noise.is_diagonal
+    assert fit.noise_variance > 0
+    full = Objective(x, y - x, SquaredExp(), Dense(dense), True)
+    theta = np.r_[fit.kernel.theta, np.log(fit.noise_variance)]
+    assert fit.log_marginal_likelihood == pytest.approx(full.value(theta), rel=1e-10)
+    for e in np.eye(3) * 0.05:
+        assert full.value(theta + e) <= fit.log_marginal_likelihood + 1e-6
+        assert full.value(theta - e) <= fit.log_marginal_likelihood + 1e-6
+
+
+def test_jitter_zero_for_well_conditioned_fit(data):
+    x, y = data
+    fit = fit_gp(x, y, hyperparameters={"length_scale": L0, "variance": V0, "noise_variance": SN0})
+    assert fit.jitter == 0.0
+
+
+def test_determinism(data):
+    x, y = data
+    a = fit_gp(x, y, kernel="matern32", seed=7)
+    b = fit_gp(x, y, kernel="matern32", seed=7)
+    c = fit_gp(x, y, kernel="matern32", seed=np.random.default_rng(7))
+    for other in (b, c):
+        assert other.hyperparameters == a.hyperparameters  # bit-identical
+        assert other.log_marginal_likelihood == a.log_marginal_likelihood
+        for s, t in zip(a.optimization.starts, other.optimization.starts, strict=True):
+            assert np.array_equal(s.theta0, t.theta0) and np.array_equal(s.theta, t.theta)
+
+
+def test_optimization_diagnostics(data):
+    x, y = data
+    fit = fit_gp(x, y, kernel="se", n_restarts=4, seed=0)
+    opt = fit.optimization
+    assert len(opt.starts) == 4
+    assert opt.value == max(s.value for s in opt.starts)
+    assert opt.n_evals == opt.n_candidates + sum(s.n_evals for s in opt.starts)
+    assert opt.n_candidates >= 16
+
+
+def test_hyperparameters_dict(data):
+    x, y = data
+    fit = fit_gp(x, y, kernel="se", seed=0)
+    hp = fit.hyperparameters
+    assert set(hp) == {"length_scale", "variance", "noise_variance"}
+    assert hp["length_scale"] == fit.kernel.length_scale
+    assert hp["variance"] == fit.kernel.variance
+    assert hp["noise_variance"] == fit.noise_variance > 0
+    p = fit_gp(
+        x * 360,
+        y * 360,
+        kernel="periodic",
+        period=360.0,
+        hyperparameters={"length_scale": 1.0, "variance": 1.0, "noise_variance": 0.1},
+    )
+    assert p.hyperparameters == {
+        "length_scale": pytest.approx(1.0, rel=1e-15),
+        "variance": pytest.approx(1.0, rel=1e-15),
+        "period": 360.0,
+        "noise_variance": 0.1,
+    }
+    # given hyperparameters round-trip through the fit
+    again = fit_gp(x, y, hyperparameters=hp)
+    assert again.hyperparameters == pytest.approx(hp, rel=1e-14)
+    assert again.log_marginal_likelihood == pytest.approx(fit.log_marginal_likelihood, rel=1e-11)
+
+
+def test_predict_many_points_mean_only_matches_std_path(data):
+    x, y = data
+    fit = fit_gp(x, y, hyperparameters={"length_scale": L0, "variance": V0, "noise_variance": SN0})
+    xs = np.linspace(-0.5, 1.5, 100_000)  # several chunks of 32768
+    mean = fit.predict(xs)
+    mean2, std = fit.predict(xs, return_std=True)
+    assert mean.shape == std.shape == (100_000,)
+    assert_allclose(mean, mean2, rtol=0)
+    assert_allclose(mean, xs + se(xs, x, L0, V0) @ fit.alpha, rtol=1e-12, atol=1e-14)
+    sub = np.r_[0:100_000:997, 99_999]
+    _, cov = fit.predict(xs[sub], return_cov=True)
+    assert_allclose(std[sub], np.sqrt(np.clip(np.diagonal(cov), 0, None)), rtol=1e-9, atol=1e-12)
+    assert np.all(std <= np.sqrt(V0) * (1 + 1e-12))
+
+
+def test_predict_refuses_std_and_cov(data):
+    x, y = data
+    fit = fit_gp(x, y, hyperparameters={"length_scale": L0, "variance": V0, "noise_variance": SN0})
+    with pytest.raises(ValueError, match="not both"):
+        fit.predict(XS, return_std=True, return_cov=True)
+
+
+@pytest.mark.parametrize(
+    ("mean", "name", "value"),
+    [
+        ("identity", "identity", None),
+        ("zero", "zero", 0.0),
+        ("constant", "constant", "avg"),
+        (0.3, "constant", 0.3),
+    ],
+)
+def test_prior_means(mean, name, value, data):
+    x, y = data
+    hp = {"length_scale": L0, "variance": 0.5, "noise_variance": SN0}
+    fit = fit_gp(x, y, mean=mean, hyperparameters=hp)
+    assert fit.mean.name == name
+    if value is None:
+        mx, ms = x, XS
+    else:
+        c = float(np.mean(y)) if value == "avg" else value
+        mx, ms = np.full(N, c), np.full(XS.size, c)
+    exp_mean, exp_cov = dense_posterior(
+        se(x, x, L0, 0.5), se(XS, x, L0, 0.5), se(XS, XS, L0, 0.5), SN0 * np.eye(N), y - mx, ms
+    )
+    got, cov = fit.predict(XS, return_cov=True)
+    # cond(Kt) ~ variance / noise_variance = 5e5: allow 1e-10 absolute on values of order 1
+    assert_allclose(got, exp_mean, rtol=1e-10, atol=1e-10)
+    assert_allclose(cov, exp_cov, rtol=0, atol=1e-10 * 0.5)
+    expected_lml = dense_lml(y - mx, se(x, x, L0, 0.5) + SN0 * np.eye(N))
+    assert fit.log_marginal_likelihood == pytest.approx(expected_lml, rel=1e-11)
+    lml = log_marginal_likelihood(x, y, kernel=SquaredExp(L0, 0.5), mean=mean, noise_variance=SN0)
+    assert lml == pytest.approx(expected_lml, rel=1e-11)
+    # far from the data the prediction returns to the prior mean
+    far = fit.predict(np.array([50.0]))[0]
+    assert far == pytest.approx(50.0 if value is None else ms[0], rel=1e-12, abs=1e-12)
+
+
+def test_fitted_gp_is_frozen(data):
+    import dataclasses
+
+    x, y = data
+    fit = fit_gp(x, y, hyperparameters={"length_scale": L0, "variance": V0, "noise_variance": SN0})
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        fit.noise_variance = 1.0
+
+
+SCALED = ["se", "matern32", "matern52", "periodic"]
+
+
+@pytest.mark.skipif(not hasattr(Objective, "value_grad_hess"), reason="no exact Hessian")
+@pytest.mark.parametrize("kname", SCALED)
+@pytest.mark.parametrize(("nform", "learn"), [*NOISES, ("profile", True)])
+def test_objective_hessian(kname, nform, learn, data, vec, dense):
+    x, y = data
+    kernel = KERNELS[kname]
+    profile = nform == "profile"
+    known = {"none": None, "profile": None, "vector": Diagonal(vec), "dense": Dense(dense)}[nform]
+    obj = Objective(x, y - x, kernel, known, learn, profile=profile)
+    assert obj.has_hessian
+    if profile:
+        theta = np.array([np.log(0.3), np.log(0.05)])
+    else:
+        theta = np.r_[kernel.theta, np.log(3e-6)] if learn else kernel.theta
+    value, grad, H = obj.value_grad_hess(theta)
+    v2, g2 = obj.value_and_grad(theta)
+    assert value == pytest.approx(v2, rel=1e-12)
+    assert_allclose(grad, g2, rtol=1e-9, atol=1e-10 * np.max(np.abs(g2)))
+    assert H.shape == (obj.dim, obj.dim)
+    assert_allclose(H, H.T, rtol=1e-12, atol=1e-12 * np.max(np.abs(H)))
+    h = 1e-5
+    fd = np.empty_like(H)
+    for j in range(obj.dim):
+        e = np.zeros(obj.dim)
+        e[j] = h
+        fd[:, j] = (obj.value_and_grad(theta + e)[1] - obj.value_and_grad(theta - e)[1]) / (2 * h)
+    assert_allclose(H, fd, rtol=1e-5, atol=1e-6 * np.max(np.abs(fd)))

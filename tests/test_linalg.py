@@ -1,0 +1,101 @@
+"""Cholesky with escalating, recorded jitter; solves and log-determinants against NumPy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cascal import NumericalError, fit_gp
+from cascal.linalg import JITTER_STEPS, cho_solve, cholesky, inverse_from_cholesky, logdet
+from utils import assert_allclose, se
+
+
+@pytest.fixture
+def spd(rng):
+    B = rng.normal(size=(30, 30))
+    return B @ B.T + 30 * np.eye(30)
+
+
+def _singular():
+    # SE kernel on 50 close points, no noise: numerically rank-deficient.
+    x = np.linspace(0.0, 0.05, 50)
+    return x, se(x, x, 0.2, 1e-4)
+
+
+def test_cholesky_spd_no_jitter(spd):
+    L, jitter = cholesky(spd)
+    assert jitter == 0.0
+    assert_allclose(np.triu(L, 1), 0.0, rtol=0)
+    assert_allclose(L @ L.T, spd, rtol=1e-13)
+    assert_allclose(L, np.linalg.cholesky(spd), rtol=1e-12)
+
+
+def test_cholesky_singular_gets_jitter():
+    _, A = _singular()
+    with pytest.raises(np.linalg.LinAlgError):  # the premise: a plain Cholesky fails
+        np.linalg.cholesky(A)
+    L, jitter = cholesky(A)
+    scale = np.mean(np.diagonal(A))
+    assert jitter > 0
+    assert any(jitter == pytest.approx(r * scale, rel=1e-15) for r in JITTER_STEPS)
+    assert_allclose(L @ L.T, A + jitter * np.eye(len(A)), rtol=1e-10, atol=1e-12 * scale)
+    assert np.all(np.isfinite(L))
+
+
+def test_jitter_recorded_in_fit():
+    x, _ = _singular()
+    y = x + 1e-3 * np.sin(20 * x)
+    fit = fit_gp(
+        x,
+        y,
+        noise=0.0,
+        learn_noise=False,
+        hyperparameters={"length_scale": 0.2, "variance": 1e-4},
+    )
+    assert fit.jitter > 0
+    assert fit.jitter == pytest.approx(cholesky(se(x, x, 0.2, 1e-4))[1], rel=1e-12)
+    Kt = se(x, x, 0.2, 1e-4) + fit.jitter * np.eye(x.size)
+    assert_allclose(fit.L @ fit.L.T, Kt, rtol=1e-10, atol=1e-12 * 1e-4)
+
+
+def test_cholesky_refuses_indefinite(rng):
+    Q, _ = np.linalg.qr(rng.normal(size=(5, 5)))
+    A = (Q * np.array([3.0, 2.0, 1.0, 0.5, -1.0])) @ Q.T
+    with pytest.raises(NumericalError, match="not positive definite even with a jitter"):
+        cholesky(A, what="test matrix")
+    with pytest.raises(NumericalError, match=r"test matrix \(5x5\)"):
+        cholesky(A, what="test matrix")
+
+
+@pytest.mark.parametrize("where", ["full", "diagonal", "off_diagonal", "last"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_cholesky_refuses_non_finite(spd, where, bad):
+    A = spd.copy()
+    if where == "full":
+        A[:] = bad
+    elif where == "diagonal":
+        A[3, 3] = bad
+    elif where == "off_diagonal":
+        A[7, 2] = A[2, 7] = bad
+    else:
+        A[-1, -1] = bad
+    with pytest.raises(NumericalError, match="NaN or inf"):
+        cholesky(A)
+
+
+def test_cho_solve(spd, rng):
+    L, _ = cholesky(spd)
+    b = rng.normal(size=30)
+    B = rng.normal(size=(30, 4))
+    assert_allclose(cho_solve(L, b), np.linalg.solve(spd, b), rtol=1e-11)
+    assert_allclose(cho_solve(L, B), np.linalg.solve(spd, B), rtol=1e-11)
+
+
+def test_logdet_and_inverse(spd):
+    L, _ = cholesky(spd)
+    sign, ld = np.linalg.slogdet(spd)
+    assert sign == 1
+    assert logdet(L) == pytest.approx(ld, rel=1e-13)
+    inv = inverse_from_cholesky(L)
+    assert_allclose(inv, inv.T, rtol=1e-14, atol=1e-18)
+    assert_allclose(inv, np.linalg.inv(spd), rtol=1e-10, atol=1e-14)

@@ -1,0 +1,196 @@
+"""Public entry points refuse bad input with InputError naming what was expected and got."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cascal import Cascade, CascalError, InputError, SquaredExp, fit_gp, log_marginal_likelihood
+from cascal.cascade import Stage
+
+X = np.linspace(0.0, 1.0, 6)
+Y = X + 0.01 * np.sin(5 * X)
+HP = {"length_scale": 0.3, "variance": 1e-4, "noise_variance": 1e-6}
+
+
+def _fit(x, y, **kw):
+    return fit_gp(x, y, hyperparameters=HP, **kw)
+
+
+def _lml(x, y, **kw):
+    return log_marginal_likelihood(x, y, kernel=SquaredExp(0.3, 1e-4), noise_variance=1e-6, **kw)
+
+
+def _cascade(x, y, **kw):
+    # the bad pair is the device stage, below a valid test-bed stage
+    return Cascade([(X, Y), (x, y)], **kw)
+
+
+def _cascade_top(x, y, **kw):
+    return Cascade([(x, y), (X, Y)], **kw)
+
+
+ENTRY_POINTS = {"fit_gp": _fit, "lml": _lml, "cascade": _cascade, "cascade_top": _cascade_top}
+
+
+def _with(a, i, v):
+    a = a.copy()
+    a[i] = v
+    return a
+
+
+BAD = {
+    # case: (x, y, message pattern)
+    "nan_x": (_with(X, 2, np.nan), Y, r"x: expected finite values, got nan at index 2"),
+    "nan_y": (X, _with(Y, 4, np.nan), r"y: expected finite values, got nan at index 4"),
+    "inf_x": (_with(X, 0, np.inf), Y, r"x: expected finite values, got inf at index 0"),
+    "minus_inf_y": (X, _with(Y, 1, -np.inf), r"y: expected finite values, got -inf at index 1"),
+    "lengths": (X, Y[:-1], r"expected the same length, got 6 and 5"),
+    "too_few": (X[:2], Y[:2], r"x: expected at least 3 points, got 2"),
+    "two_d": (np.column_stack([X, X]), Y, r"x: expected shape \(n,\), got \(6, 2\)"),
+    "duplicate": (
+        _with(X, 3, X[1]),
+        Y,
+        r"x: duplicated position 0.2 at indices 1 and 3 "
+        r"with contradicting (\w+ )?y 0\.2084.* and 0\.6014",
+    ),
+    "text": (["a", "b", "c"], [1.0, 2.0, 3.0], r"x: expected numbers, got list"),
+}
+
+
+@pytest.mark.parametrize("entry", sorted(ENTRY_POINTS))
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_data_refused(entry, case):
+    x, y, pattern = BAD[case]
+    with pytest.raises(InputError, match=pattern) as info:
+        ENTRY_POINTS[entry](x, y)
+    assert isinstance(info.value, CascalError)
+    assert isinstance(info.value, ValueError)  # what sklearn users catch
+
+
+def test_cascade_names_the_stage():
+    with pytest.raises(InputError, match=r"^device x: expected finite values, got nan"):
+        _cascade(_with(X, 2, np.nan), Y)
+    with pytest.raises(InputError, match=r"^testbed y: expected at least|^testbed x: expected"):
+        _cascade_top(X[:2], Y[:2])
+    stage = Stage(_with(X, 1, np.inf), Y, name="encoder")
+    with pytest.raises(InputError, match=r"^encoder x: expected finite values, got inf"):
+        Cascade([(X, Y), stage])
+
+
+def test_fit_gp_uses_given_names():
+    with pytest.raises(InputError, match=r"^reading: expected finite values"):
+        fit_gp(_with(X, 0, np.nan), Y, names=("reading", "reference"))
+
+
+def test_repeated_positions_with_equal_targets_are_accepted():
+    x = _with(X, 3, X[1])
+    y = _with(Y, 3, Y[1])
+    fit = _fit(x, y)
+    assert np.all(np.isfinite(fit.alpha))
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: Cascade([(X, Y), (X, Y[::-1])]),
+        lambda: Cascade([(X, -Y)]),
+        lambda: Cascade([(X, Y), (X, _with(Y, 3, Y[2]))]),  # flat: not strictly increasing
+    ],
+)
+def test_cascade_refuses_non_increasing_relation(make):
+    with pytest.raises(InputError, match=r"y is not increasing in .*x: .*one-to-one"):
+        make()
+
+
+def test_non_increasing_message_names_the_points():
+    y = _with(Y, 4, Y[2] - 0.01)
+    with pytest.raises(
+        InputError, match=r"x=0\.6000000000000001 -> .*\(index 3\) but .*x=0\.8 -> .*\(index 4\)"
+    ):
+        Cascade([(X, y)])
+
+
+NOISE_BAD = {
+    "matrix_shape": (np.eye(7) * 1e-6, r"expected shape \(6, 6\), got \(7, 7\)"),
+    "vector_shape": (np.full(5, 1e-6), r"expected shape \(6,\), got \(5,\)"),
+    "non_square": (
+        np.ones((6, 5)) * 1e-6,
+        r"expected a square \(n, n\) matrix, got shape \(6, 5\)",
+    ),
+    "non_symmetric": (
+        np.eye(6) * 1e-6 + np.triu(np.ones((6, 6)), 1) * 1e-7,
+        r"expected a symmetric matrix, got max \|C - C\^T\| = 1e-07",
+    ),
+    "negative": (-np.eye(6), r"expected a positive semi-definite covariance, got an eigenvalue"),
+    "nan": (_with(np.eye(6), (2, 2), np.nan), r"NaN or inf"),
+    "negative_vector": (np.full(6, -1.0), r"expected finite values >= 0"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(NOISE_BAD))
+@pytest.mark.parametrize("entry", ["fit_gp", "lml", "cascade_stage"])
+def test_bad_noise_refused(case, entry):
+    noise, pattern = NOISE_BAD[case]
+    with pytest.raises(InputError, match=pattern):
+        if entry == "fit_gp":
+            _fit(X, Y, noise=noise)
+        elif entry == "lml":
+            _lml(X, Y, noise=noise)
+        else:
+            Cascade([Stage(X, Y, noise=noise)])
+
+
+def test_unknown_method():
+    with pytest.raises(
+        InputError, match=r"method: expected one of bayes, homoscedastic, lut, got 'gp'"
+    ):
+        Cascade([(X, Y)], method="gp")
+
+
+def test_no_stages():
+    with pytest.raises(InputError, match="expected at least one"):
+        Cascade([])
+
+
+def test_stage_not_a_pair():
+    with pytest.raises(InputError, match=r"stages\[1\]: expected an \(x, y\) pair or a Stage"):
+        Cascade([(X, Y), (X, Y, Y)])
+
+
+def test_check_range():
+    # the device stage's upper-sensor readings reach 1.2, beyond the test bed's [0, 1]
+    lower_y = np.linspace(0.1, 1.2, 8)
+    lower = (lower_y - 0.01, lower_y)
+    Cascade([(X, Y), lower])  # accepted without the check
+    with pytest.raises(
+        InputError,
+        match=r"device y: reading 1\.0428\d* \(index 6\) lies outside the range \[0\.0, 1\.0\] "
+        r"calibrated by testbed; 2 reading\(s\) outside",
+    ):
+        Cascade([(X, Y), lower], check_range=True)
+    inside = (np.linspace(0.1, 0.9, 8) - 0.01, np.linspace(0.1, 0.9, 8))
+    Cascade([(X, Y), inside], check_range=True)
+
+
+def test_hyperparameters_checked():
+    with pytest.raises(InputError, match=r"missing \['noise_variance'\]"):
+        fit_gp(X, Y, hyperparameters={"length_scale": 0.3, "variance": 1e-4})
+    with pytest.raises(InputError, match=r"missing \['variance'\]"):
+        fit_gp(X, Y, hyperparameters={"length_scale": 0.3, "noise_variance": 1e-6})
+    with pytest.raises(InputError, match="expected positive finite values"):
+        fit_gp(X, Y, hyperparameters={**HP, "length_scale": -1.0})
+    with pytest.raises(InputError, match="noise_variance must be >= 0"):
+        fit_gp(X, Y, hyperparameters={**HP, "noise_variance": -1.0})
+
+
+def test_bounds_checked():
+    with pytest.raises(InputError, match="unknown hyperparameter 'length'"):
+        fit_gp(X, Y, bounds={"length": (0.1, 1.0)})
+    with pytest.raises(InputError, match="expected 0 < lower <= upper"):
+        fit_gp(X, Y, bounds={"length_scale": (1.0, 0.1)})
+
+
+def test_learn_noise_false_needs_known_noise():
+    with pytest.raises(InputError, match="a known noise must be given"):
+        fit_gp(X, Y, learn_noise=False)

@@ -1,0 +1,50 @@
+"""Shared test helpers: one float64 ``assert_allclose`` and independent dense GP formulas."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["assert_allclose", "dense_lml", "dense_posterior", "fd_gradient", "se"]
+
+
+def assert_allclose(actual, desired, *, rtol: float = 1e-10, atol: float = 0.0, err_msg=""):
+    """``numpy.testing.assert_allclose`` that also requires ``actual`` to be float64."""
+    a = np.asarray(actual)
+    assert a.dtype == np.float64, f"expected float64, got {a.dtype}"
+    np.testing.assert_allclose(
+        a, np.asarray(desired, dtype=float), rtol=rtol, atol=atol, err_msg=err_msg
+    )
+
+
+def se(a, b, length_scale: float, variance: float) -> np.ndarray:
+    """Squared-exponential covariance written out by hand, shape (len(a), len(b))."""
+    d = np.asarray(a, float)[:, None] - np.asarray(b, float)[None, :]
+    return variance * np.exp(-(d**2) / (2.0 * length_scale**2))
+
+
+def dense_lml(r: np.ndarray, Kt: np.ndarray) -> float:
+    """-1/2 r^T Kt^-1 r - 1/2 log|Kt| - n/2 log 2 pi with a plain solve and slogdet."""
+    sign, logdet = np.linalg.slogdet(Kt)
+    assert sign > 0
+    return float(
+        -0.5 * r @ np.linalg.solve(Kt, r) - 0.5 * logdet - 0.5 * len(r) * np.log(2 * np.pi)
+    )
+
+
+def dense_posterior(Kxx, Ksx, Kss, noise, r, mean_s):
+    """GPML Alg. 2.1 with np.linalg.solve: posterior mean (m,) and covariance (m, m)."""
+    Kt = Kxx + noise
+    mean = mean_s + Ksx @ np.linalg.solve(Kt, r)
+    cov = Kss - Ksx @ np.linalg.solve(Kt, Ksx.T)
+    return mean, cov
+
+
+def fd_gradient(f, theta: np.ndarray, h: float = 1e-5) -> np.ndarray:
+    """Central finite differences of the scalar function ``f`` at ``theta`` (p,)."""
+    theta = np.asarray(theta, dtype=float)
+    g = np.empty_like(theta)
+    for j in range(theta.size):
+        e = np.zeros_like(theta)
+        e[j] = h
+        g[j] = (f(theta + e) - f(theta - e)) / (2 * h)
+    return g
