@@ -10,6 +10,7 @@ from .gp import FittedGP, Posterior, fit_gp, log_marginal_likelihood
 from .kernels import Constant, Matern32, Matern52, Periodic, SquaredExp
 from .means import Mean
 from .noise import Dense, Diagonal
+from .validation import aggregate_repeats
 
 __version__ = "0.1.0"
 
@@ -33,6 +34,7 @@ __all__ = [
     "SquaredExp",
     "Stage",
     "__version__",
+    "aggregate_repeats",
     "fit_gp",
     "fit_table",
     "kernels",

@@ -71,7 +71,8 @@ def log_marginal_likelihood(
         mean: Prior mean (see :func:`cascal.means.make_mean`).
         noise: Known noise: number, (n,), (n, n) or a :class:`~cascal.noise.Noise`.
         noise_variance: Learned white-noise variance added on top.
-        eval_gradient: Also return d lml / d [kernel.theta, log noise_variance], shape (p+1,).
+        eval_gradient: Also return d lml / d [kernel.theta, log noise_variance]: shape
+            (p+1,), or (p,) when ``noise_variance`` is 0 (then it is not a parameter).
     """
     xa, ya = check_pair(x, y)
     m = make_mean(mean, ya)

@@ -231,14 +231,11 @@ class Objective:
         if self.known_matrix is not None:
             v = max(v, float(np.mean(np.diagonal(self.known_matrix))))
         rows: dict[str, tuple[float, float]] = {}
-        for name in self.kernel.names:
-            base = name.split("_", 1)[1] if name.startswith(("k1_", "k2_")) else name
-            if base == "length_scale":
-                periodic = isinstance(self.kernel, Periodic)
+        for name, leaf in zip(self.kernel.names, _leaves(self.kernel), strict=True):
+            if name.rsplit("_", 2)[-2:] == ["length", "scale"]:
+                periodic = isinstance(leaf, Periodic)  # its length scale is dimensionless
                 rows[name] = (1e-2, 1e2) if periodic else (max(0.5 * gap, 1e-4 * span), 1e2 * span)
-            elif base == "variance":
-                rows[name] = (1e-6 * v, 1e4 * v)
-            else:
+            else:  # variances and constants, in the target unit squared
                 rows[name] = (1e-6 * v, 1e4 * v)
         rows["noise_variance"] = (1e-10 * v, 10.0 * v)
         for name, lohi in (user or {}).items():
@@ -256,3 +253,11 @@ class Objective:
         if not np.all(np.isfinite(b)) or np.any(b[:, 0] > b[:, 1]):
             raise InputError(f"bounds: expected 0 < lower <= upper, got {out}")
         return b
+
+
+def _leaves(kernel: Kernel) -> list[Kernel]:
+    """The leaf kernel owning each hyperparameter, in the order of ``kernel.names``."""
+    left = getattr(kernel, "left", None)
+    if left is not None:
+        return _leaves(left) + _leaves(kernel.right)  # type: ignore[attr-defined]
+    return [kernel] * kernel.n_params

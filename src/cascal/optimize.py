@@ -72,7 +72,10 @@ def newton_maximize(
     """
     lo, hi = bounds[:, 0], bounds[:, 1]
     theta = np.clip(np.asarray(theta0, dtype=float), lo, hi)
-    f, g, H = value_grad_hess(theta)
+    try:
+        f, g, H = value_grad_hess(theta)
+    except NumericalError:
+        return Start(np.asarray(theta0), theta, -np.inf, 1, False)
     evals, radius, converged = 1, _RADIUS0, False
     if not np.isfinite(f):
         return Start(np.asarray(theta0), theta, -np.inf, evals, False)
@@ -98,7 +101,10 @@ def newton_maximize(
         trial = np.clip(theta + step, lo, hi)
         d = trial - theta
         pred = float(g @ d + 0.5 * d @ H @ d)
-        ft, gt, Ht = value_grad_hess(trial)
+        try:
+            ft, gt, Ht = value_grad_hess(trial)
+        except NumericalError:  # not factorisable there: treat as a failed step
+            ft, gt, Ht = -np.inf, g, H
         evals += 1
         gain = ft - f if np.isfinite(ft) else -np.inf
         dn = float(np.linalg.norm(d))
@@ -168,7 +174,10 @@ def maximize(
 
     def neg(u: np.ndarray) -> tuple[float, np.ndarray]:
         # L-BFGS-B works on the unit box: the log-bounds of every parameter map to [0, 1].
-        v, g = value_and_grad(lo + u * width)
+        try:
+            v, g = value_and_grad(lo + u * width)
+        except NumericalError:
+            v, g = -np.inf, np.zeros_like(u)
         if not np.isfinite(v):
             return 1e300, np.zeros_like(u)
         return -v, -g * width
@@ -177,7 +186,7 @@ def maximize(
         starts: list[Start] = []
         for t0 in picks:
             starts.append(newton_maximize(value_grad_hess, t0, bounds, known=starts))
-        best = max(starts, key=lambda s: s.value)
+        best = _best(starts)
         return OptimResult(theta=best.theta, value=best.value, starts=tuple(starts), n_candidates=m)
     unit = np.column_stack([np.zeros(len(lo)), np.ones(len(lo))])
     starts = []
@@ -192,8 +201,18 @@ def maximize(
                 converged=bool(res.success),
             )
         )
-    best = max(starts, key=lambda s: s.value)
+    best = _best(starts)
     return OptimResult(theta=best.theta, value=best.value, starts=tuple(starts), n_candidates=m)
+
+
+def _best(starts: list[Start]) -> Start:
+    best = max(starts, key=lambda s: s.value)
+    if not np.isfinite(best.value):
+        raise NumericalError(
+            "no optimiser start reached a finite log marginal likelihood; check the data "
+            "for near-duplicate positions and the hyperparameter bounds"
+        )
+    return best
 
 
 def _diverse(cands: np.ndarray, scores: np.ndarray, unit: np.ndarray, k: int) -> list:
