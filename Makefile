@@ -14,6 +14,7 @@ $(STAMP): pyproject.toml requirements-lock.txt
 
 demo: $(STAMP)
 	$(BIN)/cascal example --out out
+	$(BIN)/cascal demo --out out
 
 test: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks

@@ -7,6 +7,7 @@ from .baselines import OffsetTable, fit_table
 from .cascade import Cascade, FittedCascade, Stage
 from .errors import CascalError, InputError, ModelFileError, NumericalError
 from .gp import FittedGP, Posterior, fit_gp, log_marginal_likelihood
+from .io.modelfile import CalibrationModel, load_model, save_model
 from .kernels import Constant, Matern32, Matern52, Periodic, SquaredExp
 from .means import Mean
 from .noise import Dense, Diagonal
@@ -15,6 +16,7 @@ from .validation import aggregate_repeats
 __version__ = "0.1.0"
 
 __all__ = [
+    "CalibrationModel",
     "Cascade",
     "CascalError",
     "Constant",
@@ -38,7 +40,9 @@ __all__ = [
     "fit_gp",
     "fit_table",
     "kernels",
+    "load_model",
     "log_marginal_likelihood",
     "noise",
+    "save_model",
     "simulation",
 ]

@@ -1,21 +1,24 @@
 """The ``cascal`` command: subcommands parse arguments, load, call the library once, write.
 
-Bad input ends with a one-line message on stderr and exit status 2, without a traceback.
+Bad input ends with a one-line message on stderr and exit status 2, without a traceback
+and without an output file. Library calls print nothing; this module prints.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from . import __version__
-from .errors import CascalError
+from .errors import CascalError, InputError
 
 __all__ = ["main"]
 
 EXIT_BAD_INPUT = 2
+EXIT_FAILURE = 1  # an output could not be written, or some devices of a fleet failed
 
 
 def _cmd_example(args: argparse.Namespace) -> int:
@@ -43,6 +46,257 @@ def _cmd_example(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fit(args: argparse.Namespace) -> int:
+    """Fit stage files (reference end first) and write a model file."""
+    from .io.modelfile import save_model
+    from .workflow import fit_model
+
+    data = _read_stages(args.stages, args)
+    model = fit_model(data, **_fit_kwargs(args))
+    path = save_model(args.output, model)
+    _print_model(model)
+    print(f"Model written to {path}")
+    return 0
+
+
+def _cmd_correct(args: argparse.Namespace) -> int:
+    """Correct device readings with a model; write reading, corrected, u, U, out_of_range."""
+    import numpy as np
+
+    from .io.csvout import auto_decimals, write_columns
+    from .io.data import read_readings
+    from .io.modelfile import load_model
+    from .workflow import correct
+
+    model = load_model(args.model)
+    table = read_readings(args.readings, column=args.column)
+    c = correct(model, table.columns[0])
+    out = c.out_of_range
+    n_out = int(np.count_nonzero(out))
+    lo, hi = model.calibrated_range
+    where = f"outside the calibrated range [{lo:.9g}, {hi:.9g}] {model.unit}"
+    if n_out and args.out_of_range == "error":
+        first = int(table.rows[np.argmax(out)])
+        raise InputError(f"{n_out} reading(s) {where}", file=args.readings, row=first)
+    corrected, u = c.corrected, c.u
+    if n_out and args.out_of_range == "empty":
+        corrected, u = np.where(out, np.nan, corrected), np.where(out, np.nan, u)
+    gp = not np.all(np.isnan(c.u))
+    columns = {
+        "reading": c.reading,
+        "corrected": corrected,
+        "u": u,
+        "U": 2.0 * u,
+        "out_of_range": out,
+    }
+    decimals = auto_decimals([c.reading, c.corrected], c.u if gp else None)
+    path = write_columns(args.output, columns, decimals=decimals)
+    if n_out:
+        first = int(table.rows[np.argmax(out)])
+        what = "left empty" if args.out_of_range == "empty" else "extrapolated, do not trust them"
+        _warn(
+            "correct",
+            f"{n_out} of {out.size} readings lie {where} (first: {args.readings}, row {first}); "
+            f"flagged in column out_of_range and {what}",
+        )
+    if not gp:
+        _warn("correct", "method lut gives no uncertainty: columns u and U are left empty")
+    print(f"Corrected {out.size} readings -> {path} ({decimals} decimals)")
+    return 0
+
+
+def _cmd_fit_devices(args: argparse.Namespace) -> int:
+    """Fit the test bed once, then every device file in a folder against it, in parallel."""
+    from .io.atomic import write_text
+    from .io.modelfile import save_model
+    from .workflow import fit_devices, fit_model
+
+    folder = Path(args.devices)
+    files = sorted(folder.glob("*.csv")) if folder.is_dir() else []
+    if not files:
+        raise InputError(f"no *.csv device files in folder {folder}")
+    (testbed,) = _read_stages([args.testbed], args)
+    out = Path(args.output)
+    tb_model = save_model(out / "testbed.json", fit_model([testbed], **_fit_kwargs(args)))
+    print(f"Test bed fitted once: {tb_model}")
+    options = dict(_fit_kwargs(args), x_column=_one(args.x_column), y_column=_one(args.y_column))
+
+    def report(r) -> None:
+        if r.error:
+            _warn("fit-devices", f"skipped device {r.device}: {r.error}")
+        else:
+            print(f"  {r.device}: rms correction {r.rms_correction:.4g}, largest u {r.max_u:.4g}")
+
+    jobs = args.jobs or os.cpu_count() or 1
+    results = fit_devices(
+        tb_model, files, out / "devices", options=options, jobs=jobs, on_result=report
+    )
+    summary = write_text(out / "fleet_summary.csv", _fleet_csv(results))
+    n_bad = sum(r.error is not None for r in results)
+    print(f"{len(results) - n_bad} of {len(results)} devices calibrated; summary: {summary}")
+    return EXIT_FAILURE if n_bad else 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    """Write a self-contained HTML report of a model file."""
+    from .io.atomic import write_text
+    from .io.modelfile import load_model
+    from .report import build_report
+
+    model = load_model(args.model)
+    path = write_text(args.output, build_report(model, source=Path(args.model).name))
+    print(f"Report written to {path}")
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    """Simulate a linear and a rotary cascade, then fit, correct and report them."""
+    from .cli_demo import run_demo
+
+    return run_demo(Path(args.out), seed=args.seed, main=main)
+
+
+def _read_stages(paths: Sequence[str], args: argparse.Namespace) -> list:
+    from .io.data import read_stage
+
+    n = len(paths)
+    xs = _per_file(args.x_column, n, "--x-column")
+    ys = _per_file(args.y_column, n, "--y-column")
+    period = args.period if args.kernel == "periodic" else None
+    if args.kernel == "periodic" and period is None:
+        raise InputError("--kernel periodic needs --period (e.g. --period 360 for degrees)")
+    if args.period is not None and not (0 < args.period < float("inf")):
+        raise InputError(f"--period: expected a positive number, got {args.period!r}")
+    return [
+        read_stage(p, x_column=x, y_column=y, period=period)
+        for p, x, y in zip(paths, xs, ys, strict=True)
+    ]
+
+
+def _per_file(values: list[str] | None, n: int, option: str) -> list[str | None]:
+    if not values:
+        return [None] * n
+    if len(values) == 1:
+        return values * n
+    if len(values) != n:
+        raise InputError(
+            f"{option}: give it once (all files) or once per file ({n}), got {len(values)}"
+        )
+    return list(values)
+
+
+def _one(values: list[str] | None) -> str | None:
+    if values and len(values) > 1:
+        raise InputError("fit-devices: give --x-column and --y-column once, for all device files")
+    return values[0] if values else None
+
+
+def _fit_kwargs(args: argparse.Namespace) -> dict[str, object]:
+    return dict(
+        method=args.method,
+        kernel=args.kernel,
+        period=args.period,
+        unit=args.unit,
+        n_restarts=args.restarts,
+        seed=args.seed,
+    )
+
+
+def _print_model(model) -> None:
+    for k, (m, src, counts) in enumerate(
+        zip(model.fitted.models, model.sources, model.counts, strict=True)
+    ):
+        hp = getattr(m, "hyperparameters", {})
+        text = ", ".join(f"{name} {v:.4g}" for name, v in hp.items()) or "lookup table"
+        print(f"Stage {k} ({src.file}: {src.rows} rows, {counts.size} points): {text}")
+    lo, hi = model.calibrated_range
+    span = f"full turn (period {model.period:g})" if model.periodic else f"[{lo:.9g}, {hi:.9g}]"
+    print(f"Calibrated device range: {span} {model.unit}")
+
+
+def _fleet_csv(results) -> str:
+    import csv
+    import io
+
+    names = []
+    for r in results:
+        names += [n for n in r.hyperparameters if n not in names]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(
+        [
+            "device",
+            "status",
+            "points",
+            *names,
+            "rms_correction",
+            "max_u",
+            "range_lo",
+            "range_hi",
+            "model",
+            "error",
+        ]
+    )
+    for r in results:
+        hp = [repr(r.hyperparameters[n]) if n in r.hyperparameters else "" for n in names]
+        nums = [r.rms_correction, r.max_u, *r.calibrated_range]
+        cells = ["" if v != v else repr(float(v)) for v in nums]
+        w.writerow(
+            [
+                r.device,
+                "error" if r.error else "ok",
+                r.points or "",
+                *hp,
+                *cells,
+                r.model or "",
+                r.error or "",
+            ]
+        )
+    return buf.getvalue()
+
+
+def _warn(command: str, message: str) -> None:
+    sys.stdout.flush()
+    print(f"cascal {command}: warning: {message}", file=sys.stderr)
+
+
+def _fit_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by ``fit`` and ``fit-devices``."""
+    p.add_argument(
+        "--method",
+        choices=("bayes", "homoscedastic", "lut"),
+        default="bayes",
+        help="bayes: Algorithm 1 (default); homoscedastic: Alternative 1; lut: lookup tables",
+    )
+    p.add_argument(
+        "--kernel",
+        choices=("se", "matern32", "matern52", "periodic"),
+        default="se",
+        help="GP kernel (default se)",
+    )
+    p.add_argument(
+        "--period",
+        type=float,
+        default=None,
+        help="period of --kernel periodic, e.g. 360 for degrees",
+    )
+    p.add_argument("--unit", default="m", help="unit of the readings, for labels (default m)")
+    p.add_argument(
+        "--x-column",
+        action="append",
+        metavar="NAME",
+        help="column of the sensor being calibrated (once for all files, or once per file)",
+    )
+    p.add_argument(
+        "--y-column",
+        action="append",
+        metavar="NAME",
+        help="column of the more accurate sensor (once, or once per file)",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the optimiser's starts (default 0)")
+    p.add_argument("--restarts", type=int, default=5, help="optimiser starts per stage (default 5)")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="cascal", description="Cascaded calibration of position sensors with GPs."
@@ -53,6 +307,71 @@ def _parser() -> argparse.ArgumentParser:
     ex.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     ex.add_argument("--out", default="out", help="output folder (default out/)")
     ex.set_defaults(func=_cmd_example)
+
+    fit = sub.add_parser("fit", help="fit stage CSV files (reference end first) into a model file")
+    fit.add_argument(
+        "stages", nargs="+", metavar="STAGE.csv", help="stage files: reading, more accurate reading"
+    )
+    fit.add_argument(
+        "-o", "--output", required=True, metavar="MODEL.json", help="model file to write"
+    )
+    _fit_options(fit)
+    fit.set_defaults(func=_cmd_fit)
+
+    cor = sub.add_parser("correct", help="correct device readings with a model file")
+    cor.add_argument("model", metavar="MODEL.json")
+    cor.add_argument(
+        "readings", metavar="READINGS.csv", help="device readings, one column with a header"
+    )
+    cor.add_argument("-o", "--output", required=True, metavar="OUT.csv", help="file to write")
+    cor.add_argument(
+        "--column",
+        default=None,
+        metavar="NAME",
+        help="column of the readings (if the file has several)",
+    )
+    cor.add_argument(
+        "--out-of-range",
+        choices=("flag", "empty", "error"),
+        default="flag",
+        help=(
+            "readings outside the calibrated range: flag and extrapolate (default), "
+            "flag and leave the cells empty, or refuse the file"
+        ),
+    )
+    cor.set_defaults(func=_cmd_correct)
+
+    fd = sub.add_parser(
+        "fit-devices", help="calibrate a folder of device files against one test bed"
+    )
+    fd.add_argument("testbed", metavar="TESTBED.csv", help="test bed against the reference")
+    fd.add_argument(
+        "--devices",
+        required=True,
+        metavar="DIR",
+        help="folder of device files (*.csv): device reading, test-bed reading",
+    )
+    fd.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        metavar="OUTDIR",
+        help="folder for testbed.json, devices/*.json and fleet_summary.csv",
+    )
+    fd.add_argument("--jobs", type=int, default=None, help="worker processes (default: CPU count)")
+    _fit_options(fd)
+    fd.set_defaults(func=_cmd_fit_devices)
+
+    rep = sub.add_parser("report", help="write a self-contained HTML report of a model file")
+    rep.add_argument("model", metavar="MODEL.json")
+    rep.add_argument("-o", "--output", required=True, metavar="REPORT.html")
+    rep.set_defaults(func=_cmd_report)
+
+    demo = sub.add_parser("demo", help="simulate example files, then fit, correct and report them")
+    demo.add_argument("--out", default="out", help="output folder (default out/)")
+    demo.add_argument("--seed", type=int, default=0, help="seed of the simulation (default 0)")
+    demo.set_defaults(func=_cmd_demo)
+
     from .cli_study import add_study_parser
 
     add_study_parser(sub)
@@ -68,6 +387,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except CascalError as exc:
         print(f"cascal {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except OSError as exc:
+        print(f"cascal {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
     except KeyboardInterrupt:
         print(f"cascal {args.command}: interrupted", file=sys.stderr)
         return 130

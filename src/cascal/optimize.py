@@ -14,7 +14,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize
 
 from .errors import NumericalError
 
@@ -188,6 +187,8 @@ def maximize(
             starts.append(newton_maximize(value_grad_hess, t0, bounds, known=starts))
         best = _best(starts)
         return OptimResult(theta=best.theta, value=best.value, starts=tuple(starts), n_candidates=m)
+    from scipy.optimize import minimize  # here: importing it costs 0.2 s at every CLI start
+
     unit = np.column_stack([np.zeros(len(lo)), np.ones(len(lo))])
     starts = []
     for theta0 in picks:

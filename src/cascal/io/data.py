@@ -1,0 +1,323 @@
+"""CSV input: stage files and readings to validated arrays (output: :mod:`.csvout`).
+
+A stage file has a header row and two columns: the readings of the sensor being calibrated,
+then the readings of the more accurate sensor it was aligned with (or any two columns picked
+by name). Repeated readings at one position (exactly equal readings of the calibrated
+sensor) are averaged; the variance of their mean becomes a known noise of that point. Every
+error is an :class:`~cascal.errors.InputError` naming the file, the 1-based row (the header
+is row 1) and the column.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..cascade import Stage
+from ..errors import InputError
+from ..validation import MIN_POINTS, aggregate_repeats
+
+__all__ = [
+    "Source",
+    "StageData",
+    "Table",
+    "read_readings",
+    "read_stage",
+    "read_table",
+]
+
+#: Above this many lines, a file is parsed by NumPy first (an error is then located exactly).
+_FAST_LINES = 5000
+
+
+@dataclass(frozen=True, slots=True)
+class Source:
+    """Provenance of an input file.
+
+    Attributes:
+        file: The path as given.
+        sha256: SHA-256 of the file's bytes, hex.
+        rows: Data rows below the header.
+        columns: Names of the columns used.
+    """
+
+    file: str
+    sha256: str
+    rows: int
+    columns: tuple[str, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class Table:
+    """Numeric columns read from a CSV file.
+
+    Attributes:
+        columns: The columns, each shape (n,).
+        rows: File row of each value (the header is row 1), shape (n,).
+        source: The file's provenance.
+    """
+
+    columns: tuple[np.ndarray, ...]
+    rows: np.ndarray
+    source: Source
+
+
+@dataclass(frozen=True, slots=True)
+class StageData:
+    """One stage file, validated and with repeated readings averaged.
+
+    Attributes:
+        x: Distinct readings of the calibrated sensor, increasing, shape (k,).
+        y: Mean reading of the more accurate sensor at each, shape (k,).
+        noise: Variance of each mean from the spread of its repeats, shape (k,), or None
+            when no position was read twice.
+        counts: Readings averaged into each point, shape (k,).
+        rows: File row of each point's first reading, shape (k,).
+        source: The file's provenance.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    noise: np.ndarray | None
+    counts: np.ndarray
+    rows: np.ndarray
+    source: Source
+
+    def stage(self, name: str) -> Stage:
+        """The points as a :class:`~cascal.cascade.Stage` called ``name``."""
+        return Stage(self.x, self.y, self.noise, name)
+
+
+def read_table(
+    path: str | os.PathLike,
+    columns: Sequence[str | None],
+    *,
+    hint: str = "",
+    min_rows: int = 1,
+) -> Table:
+    """Read numeric columns of a CSV file with a header row.
+
+    Args:
+        path: The file, comma, semicolon or tab separated (detected from the header).
+        columns: One entry per wanted column: its name, or all None to take the columns in
+            order (the file must then have exactly ``len(columns)`` columns).
+        hint: Appended to the message about missing or extra columns.
+        min_rows: Fewest data rows accepted.
+
+    Raises:
+        InputError: Naming the file, row and column of the first problem.
+    """
+    name = str(path)
+    try:
+        raw = Path(path).read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read the file ({exc.strerror or exc})", file=name) from None
+    digest = hashlib.sha256(raw).hexdigest()
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not UTF-8 text ({exc.reason} at byte {exc.start})", file=name) from None
+    first = text.split("\n", 1)[0].rstrip("\r")
+    delim = max((",", ";", "\t"), key=first.count)
+    header = _header(first, delim, name)
+    idx = _pick(header, columns, name, hint)
+    values = rows = None
+    if raw.count(b"\n") > _FAST_LINES:
+        values = _fast(path, raw, delim, len(header))
+        if values is not None:
+            rows = np.arange(2, values.shape[0] + 2)
+    if values is None:
+        values, rows = _slow(text, delim, header, idx, name)
+    if rows.size < min_rows:
+        raise InputError(
+            f"expected at least {min_rows} data rows below the header, got {rows.size}",
+            file=name,
+            row=int(rows[-1]) if rows.size else 1,
+        )
+    names = tuple(header[i] for i in idx)
+    cols = tuple(np.ascontiguousarray(values[:, i]) for i in idx)
+    return Table(cols, rows, Source(name, digest, int(rows.size), names))
+
+
+def read_stage(
+    path: str | os.PathLike,
+    *,
+    x_column: str | None = None,
+    y_column: str | None = None,
+    period: float | None = None,
+) -> StageData:
+    """Read a stage file: readings of the calibrated sensor and of the more accurate one.
+
+    Args:
+        path: CSV file with a header row.
+        x_column, y_column: Column names; both None: the file's two columns, in order.
+        period: For a rotary sensor (periodic kernel), the period: each more accurate
+            reading is moved by whole periods to within half a period of its reading.
+
+    Raises:
+        InputError: Missing or extra columns, non-numeric or non-finite cells, fewer than
+            three rows or positions, or a relation between the two sensors that is not
+            increasing; the message names the file and row.
+    """
+    hint = "; choose two by name with --x-column and --y-column"
+    table = read_table(path, (x_column, y_column), hint=hint, min_rows=MIN_POINTS)
+    name = table.source.file
+    x, y = table.columns
+    if period is not None:
+        y = x + (np.mod(y - x + 0.5 * period, period) - 0.5 * period)
+    rep = aggregate_repeats(x, y, table.source.columns)
+    rows = table.rows[rep.first]
+    if rep.x.size < MIN_POINTS:
+        raise InputError(
+            f"expected readings at {MIN_POINTS} or more distinct positions in column "
+            f"{table.source.columns[0]!r}, got {rep.x.size}",
+            file=name,
+            row=int(table.rows[-1]),
+        )
+    bad = np.flatnonzero(np.diff(rep.y) <= 0)
+    if bad.size:
+        k = bad[0]
+        xn, yn = table.source.columns
+        raise InputError(
+            f"{yn} {float(rep.y[k + 1])!r} at {xn} {float(rep.x[k + 1])!r} is not above "
+            f"{yn} {float(rep.y[k])!r} at {xn} {float(rep.x[k])!r} (row {int(rows[k])}); "
+            "the more accurate reading must increase with the calibrated one (one-to-one, "
+            "the paper's bijectivity assumption)",
+            file=name,
+            row=int(rows[k + 1]),
+            column=yn,
+        )
+    noise = rep.noise if np.any(rep.counts > 1) else None
+    return StageData(rep.x, rep.y, noise, rep.counts, rows, table.source)
+
+
+def read_readings(path: str | os.PathLike, *, column: str | None = None) -> Table:
+    """Read device readings to correct: a one-column file, or the column named ``column``."""
+    return read_table(path, (column,), hint="; choose one by name with --column")
+
+
+def _header(first: str, delim: str, name: str) -> list[str]:
+    if not first.strip():
+        raise InputError(
+            "expected a header row with column names, got an empty line", file=name, row=1
+        )
+    header = [c.strip() for c in next(csv.reader([first], delimiter=delim))]
+    if all(_is_number(c) for c in header):
+        raise InputError(
+            f"expected a header row with column names, got numbers ({first.strip()!r}); "
+            "add a first line naming the columns",
+            file=name,
+            row=1,
+        )
+    return header
+
+
+def _pick(header: list[str], columns: Sequence[str | None], name: str, hint: str) -> list[int]:
+    """Header indices of the wanted columns; None entries take the remaining ones in order."""
+    have = ", ".join(repr(h) for h in header)
+    idx: list[int | None] = []
+    for c in columns:
+        if c is None:
+            idx.append(None)
+            continue
+        if c not in header:
+            raise InputError(f"missing column {c!r}; the header has {have}", file=name, row=1)
+        if header.count(c) > 1:
+            raise InputError(f"column {c!r} appears {header.count(c)} times", file=name, row=1)
+        idx.append(header.index(c))
+    free = [i for i in range(len(header)) if i not in idx]
+    want = idx.count(None)
+    if want and len(free) != want:
+        what = "missing" if len(free) < want else "extra"
+        n = len(columns)
+        expect = "a reading and a more accurate reading" if n == 2 else "the readings"
+        raise InputError(
+            f"{what} columns: expected {n} ({expect}), got {len(header)} ({have}){hint}",
+            file=name,
+            row=1,
+        )
+    it = iter(free)
+    return [next(it) if i is None else i for i in idx]
+
+
+def _fast(path: str | os.PathLike, raw: bytes, delim: str, width: int) -> np.ndarray | None:
+    """All columns parsed by NumPy, or None when anything is unusual (then parse exactly)."""
+    try:
+        values = np.loadtxt(
+            path,
+            delimiter=delim,
+            skiprows=1,
+            ndmin=2,
+            comments=None,
+            dtype=float,
+            encoding="utf-8-sig",
+        )
+    except ValueError:
+        return None
+    body = raw.split(b"\n", 1)[1] if b"\n" in raw else b""
+    lines = body.count(b"\n") + (0 if body.endswith(b"\n") or not body else 1)
+    if values.shape != (lines, width) or not np.all(np.isfinite(values)):
+        return None
+    return values
+
+
+def _slow(
+    text: str, delim: str, header: list[str], idx: list[int], name: str
+) -> tuple[np.ndarray, np.ndarray]:
+    reader = csv.reader(io.StringIO(text), delimiter=delim)
+    next(reader)
+    out: list[list[float]] = []
+    rows: list[int] = []
+    width = len(header)
+    for cells in reader:
+        row = reader.line_num
+        if not cells or all(not c.strip() for c in cells):
+            continue  # blank line
+        if len(cells) != width:
+            what = "missing cells" if len(cells) < width else "extra cells"
+            raise InputError(
+                f"{what}: expected {width} ({', '.join(header)}), got {len(cells)}",
+                file=name,
+                row=row,
+            )
+        vals = []
+        for j, cell in enumerate(cells):
+            if j not in idx:
+                vals.append(math.nan)
+                continue
+            vals.append(_number(cell, name, row, header[j]))
+        out.append(vals)
+        rows.append(row)
+    values = np.array(out, dtype=float).reshape(len(out), width)
+    return values, np.array(rows, dtype=np.int64)
+
+
+def _number(cell: str, name: str, row: int, column: str) -> float:
+    s = cell.strip()
+    if not s:
+        raise InputError("expected a number, got an empty cell", file=name, row=row, column=column)
+    try:
+        v = float(s)
+    except ValueError:
+        raise InputError(
+            f"expected a number, got {s!r}", file=name, row=row, column=column
+        ) from None
+    if not math.isfinite(v):
+        raise InputError(f"expected a finite number, got {s!r}", file=name, row=row, column=column)
+    return v
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True

@@ -1,0 +1,436 @@
+"""Model files: a fitted cascade as versioned, checksummed JSON (never pickle).
+
+A model file (schema ``io/schemas/1/model.json``) holds, per stage, the data (averaged
+readings, their known noise and counts), the kernel and hyperparameters, and what a
+prediction needs: the training positions, the weights ``alpha`` and the lower Cholesky
+factor ``L`` of the target covariance, stored as computed, so a loaded model predicts the
+same numbers as the fitted one, bit for bit. The known noise of each target (the previous
+stage's full posterior covariance in method ``bayes``) is stored too, for plots and
+inspection; predictions do not need it. Then the provenance (input files with SHA-256,
+rows, columns; creation time; cascal version; seed) and a SHA-256 of the canonical JSON
+(sorted keys, no spaces) of everything else. Files are written atomically; loading checks
+the version, the checksum, the schema and the consistency of the arrays.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..baselines import OffsetTable
+from ..cascade import FittedCascade, Stage
+from ..errors import CascalError, ModelFileError
+from ..gp import FittedGP
+from ..kernels import Constant, Kernel, Matern32, Matern52, Periodic, Product, SquaredExp, Sum
+from ..means import Mean
+from ..noise import Dense, Diagonal, Noise, NoiseSum
+from ..optimize import OptimResult, Start
+from .atomic import write_text
+from .data import Source
+from .schema import SchemaError, load_schema, validate
+
+__all__ = ["SCHEMA_VERSION", "CalibrationModel", "load_model", "model_to_dict", "save_model"]
+
+#: Schema version this cascal writes and reads.
+SCHEMA_VERSION = 1
+_SCALED = {"SquaredExp": SquaredExp, "Matern32": Matern32, "Matern52": Matern52}
+
+
+@dataclass(frozen=True, slots=True)
+class CalibrationModel:
+    """A fitted cascade with its data and provenance: what a model file holds.
+
+    Attributes:
+        fitted: The fitted cascade (its last model corrects device readings).
+        data: Per stage, the averaged input readings (``y`` of the more accurate sensor,
+            not the propagated targets) and their known noise.
+        counts: Per stage, readings averaged into each point, shape (k,).
+        sources: Per stage, the input file's provenance.
+        unit: Unit of all readings, e.g. ``"m"`` or ``"deg"``.
+        kernel: Kernel family asked for (``"se"``, ...), None for ``lut``.
+        period: Period of a periodic kernel, or None.
+        seed: Seed of the fit.
+        n_restarts: L-BFGS-B starts per stage.
+        created: UTC time of the fit, ISO 8601.
+        cascal_version: Version that fitted it.
+    """
+
+    fitted: FittedCascade
+    data: tuple[Stage, ...]
+    counts: tuple[np.ndarray, ...]
+    sources: tuple[Source, ...]
+    unit: str = "m"
+    kernel: str | None = "se"
+    period: float | None = None
+    seed: int | None = 0
+    n_restarts: int = 5
+    created: str = ""
+    cascal_version: str = ""
+
+    @property
+    def method(self) -> str:
+        """``bayes``, ``homoscedastic`` or ``lut``."""
+        return self.fitted.method
+
+    @property
+    def calibrated_range(self) -> tuple[float, float]:
+        """Smallest and largest device reading the last stage was fitted on."""
+        return self.fitted.calibrated_range
+
+    @property
+    def periodic(self) -> bool:
+        """True for a periodic kernel: the model covers a full turn."""
+        return self.period is not None
+
+
+def save_model(path: str | os.PathLike, model: CalibrationModel) -> Path:
+    """Write ``model`` to ``path`` as JSON, atomically (a temporary file, then a rename)."""
+    doc = model_to_dict(model)
+    doc["checksum"] = {"algorithm": "sha256", "value": _checksum(doc)}
+    return write_text(path, _pretty(doc) + "\n")
+
+
+def model_to_dict(model: CalibrationModel) -> dict[str, Any]:
+    """The model file's content without the checksum, as JSON-ready Python values."""
+    stages = []
+    for k, (data, fitted, counts) in enumerate(
+        zip(model.data, model.fitted.stages, model.counts, strict=True)
+    ):
+        m = model.fitted.models[k]
+        stages.append(
+            {
+                "name": data.name,
+                "x": _floats(data.x),
+                "y": _floats(data.y),
+                "noise": None
+                if data.noise is None
+                else _floats(np.broadcast_to(data.noise, data.x.shape)),
+                "counts": [int(c) for c in counts],
+                "model": _gp_dict(m) if isinstance(m, FittedGP) else _lut_dict(m, fitted.y),
+            }
+        )
+    lo, hi = model.calibrated_range
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "format": "cascal-model",
+        "method": model.method,
+        "unit": model.unit,
+        "kernel": model.kernel,
+        "period": None if model.period is None else float(model.period),
+        "calibrated_range": [lo, hi],
+        "stages": stages,
+        "provenance": {
+            "created": model.created or _now(),
+            "cascal_version": model.cascal_version or _version(),
+            "seed": model.seed,
+            "n_restarts": int(model.n_restarts),
+            "inputs": [
+                {"file": s.file, "sha256": s.sha256, "rows": s.rows, "columns": list(s.columns)}
+                for s in model.sources
+            ],
+        },
+    }
+
+
+def load_model(path: str | os.PathLike) -> CalibrationModel:
+    """Read a model file, checking its version, checksum, schema and arrays.
+
+    Raises:
+        ModelFileError: The file is missing, not JSON (e.g. truncated), of another schema
+            version (a newer one asks for a newer cascal), edited after it was written
+            (checksum), or inconsistent.
+    """
+    name = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ModelFileError(f"{name}: cannot read the model file ({exc})") from None
+    try:
+        doc = json.loads(text, parse_constant=_reject_constant)
+    except json.JSONDecodeError as exc:
+        end = " (the file ends early: truncated?)" if exc.pos >= len(text.rstrip()) else ""
+        raise ModelFileError(
+            f"{name}: not a valid model file: JSON error at line {exc.lineno} column "
+            f"{exc.colno}: {exc.msg}{end}"
+        ) from None
+    except ValueError as exc:
+        raise ModelFileError(f"{name}: not a valid model file: {exc}") from None
+    if not isinstance(doc, dict) or doc.get("format") != "cascal-model":
+        raise ModelFileError(f'{name}: not a cascal model file (no "format": "cascal-model")')
+    _check_version(doc.get("schema_version"), name)
+    stored = doc.get("checksum")
+    body = {k: v for k, v in doc.items() if k != "checksum"}
+    value = stored.get("value") if isinstance(stored, dict) else None
+    if value != _checksum(body):
+        raise ModelFileError(
+            f"{name}: checksum mismatch: the file was changed after cascal wrote it "
+            "(edited or damaged); fit the model again"
+        )
+    try:
+        validate(doc, load_schema("model", SCHEMA_VERSION))
+    except SchemaError as exc:
+        raise ModelFileError(
+            f"{name}: does not match model schema {SCHEMA_VERSION}: {exc}"
+        ) from None
+    try:
+        return _from_dict(doc)
+    except (CascalError, ValueError, IndexError) as exc:
+        raise ModelFileError(f"{name}: inconsistent model file: {exc}") from None
+
+
+def _check_version(version: Any, name: str) -> None:
+    if type(version) is not int:
+        raise ModelFileError(f"{name}: no integer schema_version; not a cascal model file")
+    if version > SCHEMA_VERSION:
+        raise ModelFileError(
+            f"{name}: schema version {version} is newer than this cascal ({_version()}) can "
+            f"read (version {SCHEMA_VERSION}); upgrade cascal to use this model"
+        )
+    if version != SCHEMA_VERSION:
+        raise ModelFileError(
+            f"{name}: schema version {version} is not supported (this cascal reads version "
+            f"{SCHEMA_VERSION}); fit the model again with this cascal"
+        )
+
+
+def _from_dict(doc: dict) -> CalibrationModel:
+    models: list[FittedGP | OffsetTable] = []
+    data, used, counts = [], [], []
+    for k, st in enumerate(doc["stages"]):
+        x, y = np.array(st["x"], float), np.array(st["y"], float)
+        n = x.size
+        noise = None if st["noise"] is None else np.array(st["noise"], float)
+        c = np.array(st["counts"], np.int64)
+        if y.size != n or c.size != n or (noise is not None and noise.size != n):
+            raise ValueError(f"stage {k}: x, y, noise and counts differ in length")
+        m = st["model"]
+        targets = np.array(m["targets"], float)
+        if m["type"] == "gp":
+            model = _gp_from(m, x, targets)
+        else:
+            knots, offsets = np.array(m["knots"], float), np.array(m["offsets"], float)
+            if knots.size != offsets.size or np.any(np.diff(knots) <= 0):
+                raise ValueError(f"stage {k}: knots must increase and match the offsets")
+            model = OffsetTable(knots, offsets)
+        if targets.size != n:
+            raise ValueError(f"stage {k}: {targets.size} targets for {n} points")
+        models.append(model)
+        data.append(Stage(x, y, noise, st["name"]))
+        used.append(Stage(x, targets, noise, st["name"]))
+        counts.append(c)
+    method = doc["method"]
+    tables = [isinstance(m, OffsetTable) for m in models]
+    if (method == "lut" and not all(tables)) or (method != "lut" and any(tables)):
+        raise ValueError(f"method {method!r} does not match the stage models")
+    fitted = FittedCascade(method, tuple(models), tuple(used))
+    if list(fitted.calibrated_range) != doc["calibrated_range"]:
+        raise ValueError("calibrated_range does not match the last stage's readings")
+    prov = doc["provenance"]
+    if len(prov["inputs"]) != len(models):
+        raise ValueError(f"{len(prov['inputs'])} input files for {len(models)} stages")
+    sources = tuple(
+        Source(i["file"], i["sha256"], i["rows"], tuple(i["columns"])) for i in prov["inputs"]
+    )
+    return CalibrationModel(
+        fitted, tuple(data), tuple(counts), sources, doc["unit"], doc["kernel"],
+        doc["period"], prov["seed"], prov["n_restarts"], prov["created"], prov["cascal_version"],
+    )  # fmt: skip
+
+
+def _gp_dict(gp: FittedGP) -> dict[str, Any]:
+    opt = gp.optimization
+    return {
+        "type": "gp",
+        "kernel": _kernel_dict(gp.kernel),
+        "mean": {"slope": float(gp.mean.slope), "offset": float(gp.mean.offset)},
+        "noise_variance": float(gp.noise_variance),
+        "known_noise": None if gp.noise is None else _noise_dict(gp.noise, gp.x.size),
+        "targets": _floats(gp.y),
+        "alpha": _floats(gp.alpha),
+        "cholesky": _lower(gp.L),
+        "jitter": float(gp.jitter),
+        "log_marginal_likelihood": _finite(gp.log_marginal_likelihood),
+        "optimization": None if opt is None else _opt_dict(opt),
+    }
+
+
+def _gp_from(m: dict, x: np.ndarray, targets: np.ndarray) -> FittedGP:
+    n = x.size
+    rows = m["cholesky"]
+    if len(rows) != n or any(len(r) != i + 1 for i, r in enumerate(rows)):
+        raise ValueError(f"cholesky: expected {n} rows, row i holding i + 1 entries")
+    L = np.zeros((n, n))
+    for i, r in enumerate(rows):
+        L[i, : i + 1] = r
+    lml = m["log_marginal_likelihood"]
+    return FittedGP.from_arrays(
+        x,
+        targets,
+        kernel=_kernel_from(m["kernel"]),
+        mean=Mean(m["mean"]["slope"], m["mean"]["offset"]),
+        noise=None if m["known_noise"] is None else _noise_from(m["known_noise"]),
+        noise_variance=m["noise_variance"],
+        L=L,
+        alpha=m["alpha"],
+        jitter=m["jitter"],
+        log_marginal_likelihood=math.nan if lml is None else lml,
+        optimization=None if m["optimization"] is None else _opt_from(m["optimization"]),
+    )
+
+
+def _lut_dict(table: OffsetTable, targets: np.ndarray) -> dict[str, Any]:
+    return {
+        "type": "lut",
+        "targets": _floats(targets),
+        "knots": _floats(table.knots),
+        "offsets": _floats(table.offsets),
+    }
+
+
+def _kernel_dict(k: Kernel) -> dict[str, Any]:
+    name = type(k).__name__
+    if isinstance(k, Sum | Product):
+        return {"type": name, "left": _kernel_dict(k.left), "right": _kernel_dict(k.right)}
+    if isinstance(k, Constant):
+        return {"type": name, "value": float(k.value)}
+    if isinstance(k, Periodic):
+        return {
+            "type": name,
+            "length_scale": float(k.length_scale),
+            "variance": float(k.variance),
+            "period": float(k.period),
+        }
+    if name in _SCALED:
+        return {"type": name, "length_scale": float(k.length_scale), "variance": float(k.variance)}
+    raise ValueError(f"kernel {name} cannot be stored in a model file")
+
+
+def _kernel_from(d: dict) -> Kernel:
+    t = d["type"]
+    if t in ("Sum", "Product"):
+        cls = Sum if t == "Sum" else Product
+        return cls(_kernel_from(d["left"]), _kernel_from(d["right"]))
+    if t == "Constant":
+        return Constant(d["value"])
+    if t == "Periodic":
+        return Periodic(d["length_scale"], d["variance"], period=d["period"])
+    return _SCALED[t](d["length_scale"], d["variance"])
+
+
+def _noise_dict(noise: Noise, n: int) -> dict[str, Any]:
+    if isinstance(noise, NoiseSum):
+        return {"type": "sum", "parts": [_noise_dict(p, n) for p in noise.parts]}
+    if isinstance(noise, Diagonal):
+        v = noise.variance
+        return {"type": "diagonal", "variance": float(v) if np.ndim(v) == 0 else _floats(v)}
+    if isinstance(noise, Dense):
+        return {
+            "type": "dense",
+            "lower": _lower(noise.cov),
+            "tol": float(getattr(noise, "tol", 0.0)),
+            "atol": float(getattr(noise, "atol", 0.0)),
+        }
+    raise ValueError(f"noise {type(noise).__name__} cannot be stored in a model file")
+
+
+def _noise_from(d: dict) -> Noise:
+    t = d["type"]
+    if t == "sum":
+        parts = [_noise_from(p) for p in d["parts"]]
+        return NoiseSum(tuple(parts))
+    if t == "diagonal":
+        v = d["variance"]
+        return Diagonal(v if isinstance(v, int | float) else np.array(v, float))
+    rows = d["lower"]
+    n = len(rows)
+    if any(len(r) != i + 1 for i, r in enumerate(rows)):
+        raise ValueError("known_noise: dense rows must hold i + 1 entries")
+    C = np.zeros((n, n))
+    for i, r in enumerate(rows):
+        C[i, : i + 1] = r
+    C = C + np.tril(C, -1).T
+    fields = getattr(Dense, "__dataclass_fields__", {})
+    return Dense(C, **{k: d[k] for k in ("tol", "atol") if k in fields})
+
+
+def _opt_dict(opt: OptimResult) -> dict[str, Any]:
+    return {
+        "theta": _floats(opt.theta),
+        "value": _finite(opt.value),
+        "n_candidates": int(opt.n_candidates),
+        "starts": [
+            {
+                "theta0": _floats(s.theta0),
+                "theta": _floats(s.theta),
+                "value": _finite(s.value),
+                "n_evals": int(s.n_evals),
+                "converged": bool(s.converged),
+            }
+            for s in opt.starts
+        ],
+    }
+
+
+def _opt_from(d: dict) -> OptimResult:
+    def val(v: float | None) -> float:
+        return -math.inf if v is None else float(v)
+
+    starts = tuple(
+        Start(np.array(s["theta0"], float), np.array(s["theta"], float), val(s["value"]),
+              s["n_evals"], s["converged"])
+        for s in d["starts"]
+    )  # fmt: skip
+    return OptimResult(np.array(d["theta"], float), val(d["value"]), starts, d["n_candidates"])
+
+
+def _floats(a: Any) -> list[float]:
+    return [float(v) for v in np.asarray(a, dtype=float).ravel()]
+
+
+def _lower(M: np.ndarray) -> list[list[float]]:
+    return [[float(v) for v in M[i, : i + 1]] for i in range(M.shape[0])]
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def _checksum(doc: dict) -> str:
+    canon = json.dumps(
+        doc, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False
+    )
+    return hashlib.sha256(canon.encode("ascii")).hexdigest()
+
+
+def _pretty(obj: Any, indent: int = 0) -> str:
+    """JSON with objects spread over lines and lists of numbers kept on one line."""
+    pad = " " * (indent + 2)
+    if isinstance(obj, dict) and obj:
+        items = [f"{pad}{json.dumps(k)}: {_pretty(v, indent + 2)}" for k, v in obj.items()]
+        return "{\n" + ",\n".join(items) + "\n" + " " * indent + "}"
+    if isinstance(obj, list) and any(isinstance(v, dict | list) for v in obj):
+        items = [pad + _pretty(v, indent + 2) for v in obj]
+        return "[\n" + ",\n".join(items) + "\n" + " " * indent + "]"
+    return json.dumps(obj, allow_nan=False)
+
+
+def _reject_constant(name: str) -> None:
+    raise ValueError(f"{name} is not a number JSON allows")
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+
+def _version() -> str:
+    from .. import __version__
+
+    return __version__

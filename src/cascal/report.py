@@ -1,0 +1,259 @@
+"""A self-contained HTML calibration report: tables and figures (embedded PNG), no numerics.
+
+The numbers come from :mod:`cascal.reportdata`; this module draws them with matplotlib
+(``Figure``, not pyplot) and writes one HTML page with every figure inlined as base64, so
+the page can be mailed or archived as a single file.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import math
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from . import __version__
+from .io.modelfile import CalibrationModel
+from .reportdata import CurveView, StageView, correction_curve, stage_views
+
+__all__ = ["build_report", "correction_figure", "display_scale", "stage_figure"]
+
+_SI = (("m", 1.0), ("mm", 1e3), ("µm", 1e6), ("nm", 1e9))
+_GAP_STYLE = dict(color="0.55", alpha=0.25, lw=0, hatch="//")
+
+
+def display_scale(unit: str, magnitude: float) -> tuple[float, str]:
+    """Factor and unit to show corrections of about ``magnitude`` (in ``unit``) readably:
+    metres get an SI prefix, small angles in degrees become arcseconds."""
+    magnitude = abs(float(magnitude))
+    if unit == "m" and magnitude > 0:
+        for name, f in _SI:
+            if magnitude * f >= 1.0:
+                return f, name
+        return _SI[-1][1], _SI[-1][0]
+    if unit in ("deg", "°") and 0 < magnitude < 0.1:
+        return 3600.0, "arcsec"
+    return 1.0, unit
+
+
+def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> Figure:
+    """One stage: above, the data and the fit as corrections (more accurate reading minus
+    reading); below, the residuals about the fit with the fit's 95 % band and the 95 % band
+    of the targets' noise. The stretches the reference could not reach are hatched."""
+    fig = Figure(figsize=(8.0, 5.8), layout="constrained")
+    ax, rx = fig.subplots(2, 1, sharex=True, height_ratios=(1, 1))
+    corr = view.targets - view.x
+    f, su = display_scale(unit, float(np.max(np.abs(corr))) if corr.size else 0.0)
+    ax.plot(view.grid, (view.mean - view.grid) * f, color="C0", lw=1.5, label="fit")
+    if view.target_sd is not None:
+        ax.errorbar(
+            view.x, corr * f, yerr=1.96 * view.target_sd * f, fmt=".", color="k", ms=3,
+            elinewidth=0.6, label="targets (95 % known noise)",
+        )  # fmt: skip
+    else:
+        ax.plot(view.x, corr * f, "k.", ms=4, label="data")
+    _shade(ax, view.gaps, period, "reference could not measure")
+    ax.set_ylabel(f"correction [{su}]")
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title(f"{view.name}: more accurate reading minus reading", fontsize=9)
+    scale = max(
+        np.max(np.abs(view.residuals), initial=0.0),
+        np.max(view.band, initial=0.0) if view.band is not None else 0.0,
+    )
+    fr, sr = display_scale(unit, float(scale) or 1.0)
+    if view.band is not None:
+        b = view.band * fr
+        rx.fill_between(
+            view.grid, -b, b, color="C0", alpha=0.25, lw=0, label="95 % band of the fit"
+        )
+    if view.residual_band is not None:
+        order = np.argsort(view.x)
+        xb, b = view.x[order], view.residual_band[order] * fr
+        rx.plot(xb, b, color="C2", lw=0.8, label="95 % of target noise")
+        rx.plot(xb, -b, color="C2", lw=0.8)
+    rx.axhline(0.0, color="0.3", lw=0.8)
+    rx.plot(view.x, view.residuals * fr, ".", color="C3", ms=4, label="residual (target - fit)")
+    _shade(rx, view.gaps, period, None)
+    rx.set_ylabel(f"about the fit [{sr}]")
+    rx.set_xlabel(f"reading [{unit}]")
+    rx.legend(fontsize=7, loc="best")
+    _seams(ax, rx, period=period, grid=view.grid)
+    return fig
+
+
+def correction_figure(curve: CurveView, *, unit: str, period: float | None = None) -> Figure:
+    """Final correction (corrected minus device reading) and, below, its expanded
+    uncertainty U = 2u as a band about the correction."""
+    has_u = curve.u is not None
+    fig = Figure(figsize=(8.0, 5.4 if has_u else 3.6), layout="constrained")
+    axes = fig.subplots(2, 1, sharex=True) if has_u else [fig.subplots()]
+    ax = axes[0]
+    f, su = display_scale(unit, float(np.max(np.abs(curve.correction))))
+    ax.plot(curve.grid, curve.correction * f, color="C0", lw=1.5, label="correction")
+    ax.set_ylabel(f"corrected - reading [{su}]")
+    if has_u:
+        U = 2.0 * curve.u  # type: ignore[operator]
+        fu, uu = display_scale(unit, float(np.max(U)))
+        axes[1].fill_between(
+            curve.grid, -U * fu, U * fu, color="C0", alpha=0.3, lw=0, label="± U (k = 2)"
+        )
+        axes[1].axhline(0.0, color="0.3", lw=0.8)
+        axes[1].set_ylabel(f"about the correction [{uu}]")
+    for a in axes:
+        _shade(a, curve.gaps, period, "reference could not measure" if a is ax else None)
+        if period is None:
+            for edge in curve.calibrated_range:
+                a.axvline(edge, color="0.4", ls=":", lw=1)
+        a.legend(fontsize=7, loc="best")
+    _seams(*axes, period=period, grid=curve.grid)
+    axes[-1].set_xlabel(f"device reading [{unit}]")
+    return fig
+
+
+def _shade(ax, gaps, period, label) -> None:
+    for a, b in gaps:
+        spans = (
+            [(a, b)]
+            if period is None
+            else [(a - period, b - period), (a, b), (a + period, b + period)]
+        )
+        for lo, hi in spans:
+            ax.axvspan(lo, hi, label=label, **_GAP_STYLE)
+            label = None
+
+
+def _seams(*axes, period, grid) -> None:
+    """Dashed lines where a periodic reading wraps; the grid starts an eighth before."""
+    if period is None:
+        return
+    origin = float(grid[0]) + period / 8
+    for ax in axes:
+        for s in (origin, origin + period):
+            ax.axvline(s, color="0.2", ls="--", lw=0.8)
+        ax.set_xlim(float(grid[0]), float(grid[-1]))
+
+
+def _png(fig: Figure) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def build_report(
+    model: CalibrationModel, *, title: str = "cascal calibration report", source: str = ""
+) -> str:
+    """The report of ``model`` as one self-contained HTML page.
+
+    Args:
+        model: A loaded or freshly fitted model.
+        title: Page title.
+        source: Name of the model file, shown in the summary.
+    """
+    e = html.escape
+    unit = model.unit
+    lo, hi = model.calibrated_range
+    rng = (
+        "full turn (period " + _num(model.period) + f" {unit})"
+        if model.periodic
+        else f"[{_num(lo)}, {_num(hi)}] {unit}"
+    )
+    summary = [
+        ("model file", source or "(in memory)"),
+        ("method", model.method),
+        ("kernel", model.kernel or "none (lookup tables)"),
+        ("unit", unit),
+        ("calibrated device range", rng),
+        ("stages", str(len(model.data))),
+        (
+            "fitted",
+            f"{model.created or '(not saved yet)'} with cascal "
+            f"{model.cascal_version or __version__}, seed {model.seed}",
+        ),
+    ]
+    parts = [
+        f"<h1>{e(title)}</h1>",
+        _table(["", ""], summary, header=False),
+        "<h2>Input files</h2>",
+        _table(
+            ["stage", "file", "rows", "points", "columns", "SHA-256"],
+            [
+                (str(k), s.file, str(s.rows), str(c.size), ", ".join(s.columns), s.sha256)
+                for k, (s, c) in enumerate(zip(model.sources, model.counts, strict=True))
+            ],
+        ),
+    ]
+    for k, view in enumerate(stage_views(model)):
+        parts.append(f"<h2>Stage {k}: {e(view.name)}</h2>")
+        cols = model.sources[k].columns
+        reps = int(np.sum(view.counts > 1))
+        parts.append(
+            f"<p>Maps readings of <b>{e(cols[0])}</b> to readings of <b>{e(cols[1])}</b>"
+            + (" corrected by the stage above" if k else "")
+            + f": {view.x.size} points"
+            + (f", {reps} of them averages of repeated readings" if reps else "")
+            + ".</p>"
+        )
+        if view.hyperparameters:
+            rows = [(n, _num(v)) for n, v in view.hyperparameters.items()]
+            if view.log_marginal_likelihood is not None:
+                rows.append(("log marginal likelihood", _num(view.log_marginal_likelihood)))
+            parts.append(_table(["hyperparameter", "value"], rows))
+        else:
+            parts.append("<p>Lookup table: linear interpolation, no uncertainty.</p>")
+        if view.gaps:
+            text = ", ".join(f"[{_num(a)}, {_num(b)}]" for a, b in view.gaps)
+            parts.append(
+                f"<p>Stretches where the reference could not measure ({e(unit)}): {e(text)}.</p>"
+            )
+        parts.append(_img(stage_figure(view, unit=unit, period=model.period), f"stage {k} fit"))
+    curve = correction_curve(model)
+    parts.append("<h2>Correction of device readings</h2>")
+    note = (
+        "The band is the expanded uncertainty U = 2u of the correction (about 95 %). It is the "
+        "uncertainty of the calibration map at a reading; the repeatability of a single reading "
+        "comes on top."
+        if curve.u is not None
+        else "Lookup tables give no uncertainty."
+    )
+    parts.append(f"<p>{e(note)}</p>")
+    if curve.u is not None:
+        parts.append(
+            f"<p>Largest u over the calibrated range: {_num(float(np.max(curve.u)))} {e(unit)}.</p>"
+        )
+    parts.append(_img(correction_figure(curve, unit=unit, period=model.period), "final correction"))
+    body = "\n".join(parts)
+    return (
+        '<!doctype html>\n<html lang="en"><head><meta charset="utf-8">'
+        f"<title>{e(title)}</title><style>{_CSS}</style></head>\n<body>\n{body}\n</body></html>\n"
+    )
+
+
+_CSS = (
+    "body{font-family:sans-serif;max-width:60em;margin:2em auto;color:#222}"
+    "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;"
+    "font-size:90%;text-align:left}img{max-width:100%;display:block;margin:0.5em 0}"
+)
+
+
+def _table(head: list[str], rows: list[tuple[str, ...]], *, header: bool = True) -> str:
+    e = html.escape
+    out = ["<table>"]
+    if header:
+        out.append("<tr>" + "".join(f"<th>{e(h)}</th>" for h in head) + "</tr>")
+    for r in rows:
+        out.append("<tr>" + "".join(f"<td>{e(str(c))}</td>" for c in r) + "</tr>")
+    out.append("</table>")
+    return "".join(out)
+
+
+def _img(fig: Figure, alt: str) -> str:
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{_png(fig)}">'
+
+
+def _num(v: float | None) -> str:
+    if v is None or not math.isfinite(v):
+        return "-"
+    return f"{v:.6g}"

@@ -1,0 +1,203 @@
+"""The numbers a calibration report shows, computed from a model (no drawing, no files).
+
+Per stage: the data, the fit with its 95 % band on a grid, residuals with the spread the fit
+expected of them, the hyperparameters, and the stretches where the reference could not
+measure (gaps in stage 0's readings wider than ``GAP_FACTOR`` times their median spacing,
+carried down to each stage's readings through the stages' data). Then the final correction
+curve with its uncertainty.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .gp import FittedGP
+from .io.modelfile import CalibrationModel
+from .workflow import correct
+
+__all__ = [
+    "GAP_FACTOR",
+    "CurveView",
+    "StageView",
+    "correction_curve",
+    "find_gaps",
+    "reference_gaps",
+    "stage_views",
+]
+
+#: A spacing this many times the median spacing of stage 0's readings counts as a gap.
+GAP_FACTOR = 3.0
+_Z95 = 1.959963984540054
+_GRID = 600
+
+
+@dataclass(frozen=True, slots=True)
+class StageView:
+    """One stage as the report shows it; arrays of readings in the model's unit.
+
+    Attributes:
+        name: Stage name (its file name).
+        x: Readings of the calibrated sensor, shape (n,).
+        y: Averaged readings of the more accurate sensor, shape (n,).
+        targets: What the stage was fitted to (``y`` for stage 0, the stage above's
+            correction of ``y`` below), shape (n,).
+        target_sd: Standard deviation of each target's known noise, shape (n,), or None.
+        counts: Readings averaged into each point, shape (n,).
+        grid: Readings at which the fit is drawn, shape (g,).
+        mean: Fitted map on the grid, shape (g,).
+        band: Half-width of the 95 % band of the fit on the grid, shape (g,), or None (lut).
+        residuals: ``targets - fit(x)``, shape (n,).
+        residual_band: Half-width of the 95 % band the residuals should fall in (known and
+            learned noise), shape (n,), or None.
+        hyperparameters: By name, natural units (empty for lut).
+        gaps: Stretches of ``x`` where the reference could not measure, list of (lo, hi).
+        log_marginal_likelihood: Of the fitted GP, or None.
+    """
+
+    name: str
+    x: np.ndarray
+    y: np.ndarray
+    targets: np.ndarray
+    target_sd: np.ndarray | None
+    counts: np.ndarray
+    grid: np.ndarray
+    mean: np.ndarray
+    band: np.ndarray | None
+    residuals: np.ndarray
+    residual_band: np.ndarray | None
+    hyperparameters: dict[str, float]
+    gaps: list[tuple[float, float]]
+    log_marginal_likelihood: float | None
+
+
+@dataclass(frozen=True, slots=True)
+class CurveView:
+    """The final correction: device reading -> correction, with its uncertainty.
+
+    Attributes:
+        grid: Device readings, shape (g,).
+        correction: ``corrected - reading``, shape (g,).
+        u: Standard uncertainty, shape (g,), or None (lut).
+        gaps: Device readings where the reference could not measure, list of (lo, hi).
+        calibrated_range: Smallest and largest device reading calibrated.
+    """
+
+    grid: np.ndarray
+    correction: np.ndarray
+    u: np.ndarray | None
+    gaps: list[tuple[float, float]]
+    calibrated_range: tuple[float, float]
+
+
+def find_gaps(
+    x: np.ndarray, *, factor: float = GAP_FACTOR, period: float | None = None
+) -> list[tuple[float, float]]:
+    """Stretches between neighbouring readings ``x`` (n,) wider than ``factor`` times the
+    median spacing; with ``period``, also the stretch across the seam (ending above it)."""
+    xs = np.unique(np.asarray(x, dtype=float))
+    if xs.size < 3:
+        return []
+    d = np.diff(xs)
+    limit = factor * float(np.median(d))
+    gaps = [(float(xs[i]), float(xs[i + 1])) for i in np.flatnonzero(d > limit)]
+    if period is not None and xs[0] + period - xs[-1] > limit:
+        gaps.append((float(xs[-1]), float(xs[0] + period)))
+    return gaps
+
+
+def _carry(
+    gaps: list[tuple[float, float]], upper_readings: np.ndarray, x: np.ndarray, period: float | None
+) -> list[tuple[float, float]]:
+    """Map stretches of the upper sensor's readings to this stage's readings ``x``."""
+    order = np.argsort(upper_readings)
+    yu, xs = upper_readings[order], x[order]
+    if period is not None:
+        yu = np.r_[yu - period, yu, yu + period]
+        xs = np.r_[xs - period, xs, xs + period]
+    return [(float(np.interp(a, yu, xs)), float(np.interp(b, yu, xs))) for a, b in gaps]
+
+
+def seam(model: CalibrationModel) -> float:
+    """Where the readings of a periodic model wrap: the multiple of half a period nearest
+    to the smallest reading (0 for readings in [0, 360), -180 for [-180, 180))."""
+    half = 0.5 * float(model.period)  # type: ignore[arg-type]
+    lo = min(float(d.x.min()) for d in model.data)
+    return half * round(lo / half)
+
+
+def reference_gaps(model: CalibrationModel) -> list[list[tuple[float, float]]]:
+    """Per stage, the stretches of its readings where the reference could not measure."""
+    gaps = [find_gaps(model.data[0].x, period=model.period)]
+    for data in model.data[1:]:
+        gaps.append(_carry(gaps[-1], data.y, data.x, model.period))
+    return gaps
+
+
+def stage_views(model: CalibrationModel) -> list[StageView]:
+    """Every stage of ``model`` as the report shows it, reference end first."""
+    period = model.period
+    views = []
+    for k, (data, used, m, gaps) in enumerate(
+        zip(
+            model.data, model.fitted.stages, model.fitted.models, reference_gaps(model), strict=True
+        )
+    ):
+        lo, hi = float(data.x.min()), float(data.x.max())
+        if period is not None:
+            o = seam(model)
+            grid = np.linspace(o - period / 8, o + period * 9 / 8, _GRID)
+        else:
+            pad = 0.03 * (hi - lo)
+            grid = np.linspace(lo - pad, hi + pad, _GRID)
+        if isinstance(m, FittedGP):
+            mean, std = m.predict(grid, return_std=True)
+            known = np.zeros(data.x.size) if m.noise is None else m.noise.diagonal(data.x.size)
+            fit_x = m.predict(data.x)
+            extra = dict(
+                target_sd=None if m.noise is None else np.sqrt(np.clip(known, 0.0, None)),
+                mean=mean,
+                band=_Z95 * std,
+                residuals=used.y - fit_x,
+                residual_band=_Z95 * np.sqrt(np.clip(known + m.noise_variance, 0.0, None)),
+                hyperparameters=m.hyperparameters,
+                log_marginal_likelihood=m.log_marginal_likelihood,
+            )
+        else:
+            extra = dict(
+                target_sd=None,
+                mean=m(grid),
+                band=None,
+                residuals=used.y - m(data.x),
+                residual_band=None,
+                hyperparameters={},
+                log_marginal_likelihood=None,
+            )
+        views.append(
+            StageView(
+                name=data.name,
+                x=data.x,
+                y=data.y,
+                targets=used.y,
+                counts=model.counts[k],
+                grid=grid,
+                gaps=gaps,
+                **extra,  # type: ignore[arg-type]
+            )
+        )
+    return views
+
+
+def correction_curve(model: CalibrationModel) -> CurveView:
+    """The final correction over the calibrated range; for a periodic model over one period
+    from :func:`seam` and an eighth of a period beyond each end, to show the seam."""
+    lo, hi = model.calibrated_range
+    if model.periodic:
+        p, o = float(model.period), seam(model)  # type: ignore[arg-type]
+        grid = np.linspace(o - p / 8, o + p * 9 / 8, _GRID * 2)
+    else:
+        grid = np.linspace(lo, hi, _GRID * 2)
+    c = correct(model, grid)
+    u = None if np.all(np.isnan(c.u)) else c.u
+    return CurveView(grid, c.corrected - grid, u, reference_gaps(model)[-1], (lo, hi))

@@ -1,0 +1,288 @@
+"""The calibration workflow on files: fit stage files, correct readings, calibrate a fleet.
+
+This is the library behind the ``cascal`` command (which only parses, calls one function
+here and prints). Numerics stay in the core: :class:`~cascal.cascade.Cascade` fits,
+:func:`~cascal.tabulate.predict_many` corrects many readings fast. What this module adds is
+the bookkeeping of files: which row of which file a problem is on, provenance, and a pool
+of processes for a fleet of devices.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .cascade import Cascade
+from .errors import CascalError, InputError
+from .gp import FittedGP
+from .io.data import StageData, read_stage
+from .io.modelfile import CalibrationModel, load_model, save_model
+from .tabulate import predict_many
+
+__all__ = [
+    "COVERAGE_FACTOR",
+    "Correction",
+    "DeviceResult",
+    "correct",
+    "fit_devices",
+    "fit_model",
+    "summarize_device",
+]
+
+#: Coverage factor of the expanded uncertainty U = k u (about 95 % for a normal law, GUM).
+COVERAGE_FACTOR = 2.0
+_SUMMARY_GRID = 1001
+
+
+@dataclass(frozen=True, slots=True)
+class Correction:
+    """Corrected device readings.
+
+    Attributes:
+        reading: Device readings, shape (m,).
+        corrected: Corrected positions, shape (m,), same unit.
+        u: Standard uncertainty of each correction (of the calibration map at that
+            reading, not of the reading's own repeatability), shape (m,); NaN for ``lut``.
+        out_of_range: True where the reading lies outside the calibrated range, shape (m,).
+    """
+
+    reading: np.ndarray
+    corrected: np.ndarray
+    u: np.ndarray
+    out_of_range: np.ndarray
+
+    @property
+    def U(self) -> np.ndarray:
+        """Expanded uncertainty ``k u`` with k = 2 (about 95 %), shape (m,)."""
+        return COVERAGE_FACTOR * self.u
+
+
+def fit_model(
+    stages: Sequence[StageData],
+    *,
+    method: str = "bayes",
+    kernel: str = "se",
+    period: float | None = None,
+    unit: str = "m",
+    n_restarts: int = 5,
+    seed: int | None = 0,
+    prefix: CalibrationModel | None = None,
+) -> CalibrationModel:
+    """Fit a cascade to stage files, reference end first.
+
+    Args:
+        stages: The stage files, read by :func:`~cascal.io.data.read_stage`.
+        method: ``bayes``, ``homoscedastic`` or ``lut``.
+        kernel: ``se``, ``matern32``, ``matern52`` or ``periodic`` (with ``period``).
+        period: Period of a periodic kernel, in ``unit``.
+        unit: Unit of the readings (labels only).
+        n_restarts: Optimiser starts per stage.
+        seed: Seed; stage k uses child k of ``SeedSequence(seed)`` whether or not the stages
+            above come from ``prefix``, so a device fitted on a prefix equals a full fit.
+        prefix: A fitted one-stage model (a test bed) that ``stages`` continue; its stage is
+            reused, not refitted.
+
+    Raises:
+        InputError: A stage's upper readings leave the range calibrated by the stage above
+            (naming file and row), or the library refuses the data.
+    """
+    if kernel == "periodic" and period is None:
+        raise InputError("the periodic kernel needs a period (e.g. --period 360 for degrees)")
+    head = [] if prefix is None else list(prefix.data)
+    if prefix is not None and len(head) != 1:
+        raise InputError(f"prefix: expected a one-stage model, got {len(head)} stages")
+    all_stages = head + [s.stage(Path(s.source.file).name) for s in stages]
+    if not all_stages:
+        raise InputError("expected at least one stage file")
+    periodic = kernel == "periodic" and method != "lut"
+    if not periodic:
+        for k, s in enumerate(stages):
+            _check_inside(s, all_stages[len(head) + k - 1].x if len(head) + k else None)
+    cascade = Cascade(
+        all_stages,
+        method,
+        kernel=kernel,
+        n_restarts=n_restarts,
+        seed=seed,
+        period=period,
+        check_range=not periodic,
+    )
+    first = None
+    if prefix is not None and method != "lut":
+        first = prefix.fitted.models[0]
+        if prefix.method != method or not isinstance(first, FittedGP):
+            raise InputError(f"prefix: fitted with method {prefix.method!r}, not {method!r}")
+    fitted = cascade.fit(first=first)
+    return CalibrationModel(
+        fitted,
+        tuple(all_stages),
+        (*(prefix.counts if prefix else ()), *(s.counts for s in stages)),
+        (*(prefix.sources if prefix else ()), *(s.source for s in stages)),
+        unit=unit,
+        kernel=None if method == "lut" else kernel,
+        period=period if periodic else None,
+        seed=seed,
+        n_restarts=n_restarts,
+    )
+
+
+def _check_inside(stage: StageData, upper_x: np.ndarray | None) -> None:
+    if upper_x is None:
+        return
+    lo, hi = float(upper_x.min()), float(upper_x.max())
+    out = np.flatnonzero((stage.y < lo) | (stage.y > hi))
+    if out.size:
+        i = out[np.argmin(stage.rows[out])]
+        raise InputError(
+            f"{stage.source.columns[1]} reading {float(stage.y[i])!r} lies outside the range "
+            f"[{lo!r}, {hi!r}] calibrated by the stage above ({out.size} point(s) outside); "
+            "the reference never confirmed it: measure the stage above over this range too",
+            file=stage.source.file,
+            row=int(stage.rows[i]),
+            column=stage.source.columns[1],
+        )
+
+
+def correct(model: CalibrationModel, readings: object) -> Correction:
+    """Correct device readings (m,) with the model's last stage.
+
+    Readings outside the calibrated range are flagged (never for a periodic model, which
+    covers the full turn); they are still corrected, by the GP's extrapolation (back to the
+    prior mean, with a growing u) or the lookup table's held end offset.
+    """
+    r = np.asarray(readings, dtype=float)
+    lo, hi = model.calibrated_range
+    out = np.zeros(r.shape, bool) if model.periodic else (r < lo) | (r > hi)
+    device = model.fitted.device
+    if isinstance(device, FittedGP):
+        corrected, u = predict_many(device, r, return_std=True)
+    else:
+        corrected, u = device(r), np.full(r.shape, np.nan)
+    return Correction(r, corrected, u, out)
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceResult:
+    """Outcome of one device of a fleet.
+
+    Attributes:
+        device: Device name (the file's stem).
+        file: The device's stage file.
+        error: Why it was skipped, or None.
+        model: Path of the written model, or None.
+        hyperparameters: Device stage's hyperparameters by name (empty for ``lut``).
+        rms_correction: RMS of ``corrected - reading`` over the calibrated range.
+        max_u: Largest standard uncertainty there (NaN for ``lut``).
+        calibrated_range: Smallest and largest device reading calibrated.
+        points: Points of the device stage (after averaging repeats).
+    """
+
+    device: str
+    file: str
+    error: str | None = None
+    model: str | None = None
+    hyperparameters: dict[str, float] = field(default_factory=dict)
+    rms_correction: float = float("nan")
+    max_u: float = float("nan")
+    calibrated_range: tuple[float, float] = (float("nan"), float("nan"))
+    points: int = 0
+
+
+def summarize_device(model: CalibrationModel) -> dict[str, object]:
+    """Size of a device's correction: RMS correction and largest u over the calibrated
+    range (one period for a periodic model), on a grid of 1001 readings."""
+    lo, hi = (0.0, float(model.period)) if model.periodic else model.calibrated_range
+    grid = np.linspace(lo, hi, _SUMMARY_GRID)
+    c = correct(model, grid)
+    device = model.fitted.device
+    return {
+        "hyperparameters": device.hyperparameters if isinstance(device, FittedGP) else {},
+        "rms_correction": float(np.sqrt(np.mean((c.corrected - grid) ** 2))),
+        "max_u": float(np.max(c.u)),
+    }
+
+
+def fit_devices(
+    testbed: str | os.PathLike,
+    devices: Sequence[str | os.PathLike],
+    outdir: str | os.PathLike,
+    *,
+    options: dict[str, object],
+    jobs: int = 1,
+    on_result: Callable[[DeviceResult], None] | None = None,
+) -> list[DeviceResult]:
+    """Fit each device file against one fitted test-bed model, in parallel processes.
+
+    Args:
+        testbed: A one-stage model file (the test bed against the reference).
+        devices: Device stage files (device readings, test-bed readings).
+        outdir: Folder for the device models, ``<device stem>.json``.
+        options: ``x_column``, ``y_column`` for the files; ``method``, ``kernel``, ``period``,
+            ``unit``, ``n_restarts``, ``seed`` as for :func:`fit_model` (every device gets
+            the same seed, so its model equals ``cascal fit TESTBED DEVICE`` with it).
+        jobs: Worker processes; 1 fits in this process.
+        on_result: Called with each result as it completes.
+
+    Returns:
+        One result per device, in the order of ``devices``; a bad device file has
+        ``error`` set and no model, the others complete.
+    """
+    jobs_args = [
+        (str(testbed), str(d), str(Path(outdir) / f"{Path(d).stem}.json"), options) for d in devices
+    ]
+    results: dict[int, DeviceResult] = {}
+
+    def done(i: int, res: DeviceResult) -> None:
+        results[i] = res
+        if on_result is not None:
+            on_result(res)
+
+    if jobs <= 1 or len(devices) <= 1:
+        for i, a in enumerate(jobs_args):
+            done(i, _device_job(*a))
+    else:
+        ctx = multiprocessing.get_context("spawn")
+        with cf.ProcessPoolExecutor(max_workers=min(jobs, len(devices)), mp_context=ctx) as ex:
+            futures = {ex.submit(_device_job, *a): i for i, a in enumerate(jobs_args)}
+            for fut in cf.as_completed(futures):
+                done(futures[fut], fut.result())
+    return [results[i] for i in range(len(devices))]
+
+
+def _device_job(testbed: str, device: str, out: str, options: dict[str, object]) -> DeviceResult:
+    """Fit one device (runs in a worker process); a CascalError becomes a skipped result."""
+    name = Path(device).stem
+    try:
+        prefix = load_model(testbed)
+        data = read_stage(
+            device,
+            x_column=options.get("x_column"),  # type: ignore[arg-type]
+            y_column=options.get("y_column"),  # type: ignore[arg-type]
+            period=options.get("period") if options.get("kernel") == "periodic" else None,  # type: ignore[arg-type]
+        )
+        fit_opts = {
+            k: options[k]
+            for k in ("method", "kernel", "period", "unit", "n_restarts", "seed")
+            if k in options
+        }
+        model = fit_model([data], prefix=prefix, **fit_opts)  # type: ignore[arg-type]
+        path = save_model(out, model)
+        s = summarize_device(model)
+    except (CascalError, OSError) as exc:
+        return DeviceResult(name, device, error=str(exc))
+    return DeviceResult(
+        name,
+        device,
+        model=str(path),
+        hyperparameters=s["hyperparameters"],  # type: ignore[arg-type]
+        rms_correction=s["rms_correction"],  # type: ignore[arg-type]
+        max_u=s["max_u"],  # type: ignore[arg-type]
+        calibrated_range=model.calibrated_range,
+        points=int(data.x.size),
+    )

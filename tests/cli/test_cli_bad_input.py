@@ -1,0 +1,170 @@
+"""Bad input through the installed command: exit status 2, one line naming the file, the
+row and the problem, no traceback and no output file.
+
+The commands run concurrently in a session fixture (each test then checks its own case),
+which keeps the interpreter start-ups from adding up.
+"""
+
+from __future__ import annotations
+
+import json
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+from cli_helpers import run_cascal
+
+GOOD = "a,b\n1.0,1.1\n2.0,2.05\n3.0,3.2\n4.0,4.1\n"
+
+#: name -> (stage file content, extra arguments of fit, words the message must contain)
+FIT_CASES = {
+    "missing_column": ("a\n1\n2\n3\n", [], ["row 1", "missing columns", "expected 2"]),
+    "extra_columns": ("a,b,c\n1,1,1\n2,2,2\n3,3,3\n", [], ["row 1", "extra columns", "'c'"]),
+    "unknown_column": (GOOD, ["--x-column", "nope", "--y-column", "b"], ["row 1", "'nope'"]),
+    "non_numeric": (
+        "a,b\n1,1\n2,2\n3,abc\n4,4\n",
+        [],
+        ["row 4", "column 'b'", "expected a number", "'abc'"],
+    ),
+    "empty_cell": ("a,b\n1,1\n2,\n3,3\n", [], ["row 3", "column 'b'", "empty cell"]),
+    "nan": ("a,b\n1,1\nnan,2\n3,3\n", [], ["row 3", "column 'a'", "finite", "'nan'"]),
+    "inf": ("a,b\n1,1\n2,2\n3,-inf\n", [], ["row 4", "column 'b'", "finite"]),
+    "too_few_rows": ("a,b\n1,1\n2,2\n", [], ["row 3", "at least 3 data rows", "got 2"]),
+    "too_few_positions": ("a,b\n1,1\n1,1.1\n2,2\n", [], ["3 or more distinct positions"]),
+    "extra_cell": ("a,b\n1,1\n2,2,7\n3,3\n", [], ["row 3", "extra cells"]),
+    "missing_cell": ("a,b\n1,1\n2\n3,3\n", [], ["row 3", "missing cells"]),
+    "no_header": ("1,1\n2,2\n3,3\n4,4\n", [], ["row 1", "header"]),
+    "empty_file": ("", [], ["row 1", "header"]),
+    "not_increasing": (
+        "a,b\n1,1\n2,2.5\n3,2.4\n4,4\n",
+        [],
+        ["row 4", "column 'b'", "not above", "(row 3)", "one-to-one"],
+    ),
+    "periodic_without_period": (GOOD, ["--kernel", "periodic"], ["--period"]),
+    "negative_period": (GOOD, ["--kernel", "periodic", "--period", "-3"], ["--period", "positive"]),
+}
+NO_FILE_NAMED = {"periodic_without_period", "negative_period"}
+
+
+def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[str, tuple]:
+    """Every case: name -> (argv, output path that must not appear, words, file name)."""
+    out: dict[str, tuple] = {}
+    for name, (text, extra, words) in FIT_CASES.items():
+        path = tmp / f"{name}.csv"
+        path.write_text(text)
+        dest = tmp / f"{name}.json"
+        out[name] = (["fit", path, "-o", dest, *extra], dest, words, path.name)
+    # A device stage whose test-bed readings leave the test bed's calibrated range.
+    lines = files[1].read_text().splitlines()
+    top = max(float(r.split(",")[1]) for r in lines[1:])
+    last = float(lines[-1].split(",")[0])
+    outside = tmp / "outside.csv"
+    outside.write_text("\n".join([*lines, f"{last + 0.01!r},{top + 0.5!r}"]) + "\n")
+    dest = tmp / "outside.json"
+    row = f"row {len(lines) + 1}"
+    words = [row, "column 'testbed'", "outside the range", "calibrated by the stage above"]
+    out["device_outside_testbed"] = (
+        ["fit", files[0], outside, "-o", dest],
+        dest,
+        words,
+        "outside.csv",
+    )
+    # Model files: truncated, edited, newer and older schema, not JSON, missing.
+    text = model.read_text()
+    doc = json.loads(text)
+    variants = {
+        "model_truncated": (text[: len(text) // 2], ["truncated"]),
+        "model_edited": (text.replace('"unit": "m"', '"unit": "mm"'), ["checksum", "edited"]),
+        "model_newer": (
+            text.replace('"schema_version": 1', '"schema_version": 2'),
+            ["schema version 2", "newer", "upgrade cascal"],
+        ),
+        "model_older": (
+            text.replace('"schema_version": 1', '"schema_version": 0'),
+            ["schema version 0", "not supported"],
+        ),
+        "model_not_json": ("stage,x\n1,2\n", ["not a valid model file"]),
+        "model_other_json": (json.dumps({"stages": doc["stages"][:1]}), ["not a cascal model"]),
+    }
+    for name, (content, words) in variants.items():
+        path = tmp / f"{name}.json"
+        path.write_text(content)
+        dest = tmp / f"{name}.csv"
+        out[name] = (["correct", path, readings, "-o", dest], dest, words, path.name)
+    dest = tmp / "missing_model.csv"
+    argv = ["correct", tmp / "nowhere.json", readings, "-o", dest]
+    out["model_missing"] = (argv, dest, ["cannot read"], "nowhere.json")
+    # Readings: non-numeric, and out of range when asked to refuse.
+    bad = tmp / "bad_readings.csv"
+    bad.write_text("reading\n0.5\n0.6\nzero\n")
+    dest = tmp / "bad_readings_out.csv"
+    out["readings_non_numeric"] = (
+        ["correct", model, bad, "-o", dest], dest, ["row 4", "column 'reading'", "'zero'"],
+        bad.name,
+    )  # fmt: skip
+    dest = tmp / "refused.csv"
+    n_rows = len(readings.read_text().splitlines())
+    out["readings_out_of_range_refused"] = (
+        ["correct", model, readings, "-o", dest, "--out-of-range", "error"], dest,
+        [f"row {n_rows}", "outside the calibrated range"], readings.name,
+    )  # fmt: skip
+    dest = tmp / "edited_report.html"
+    out["report_edited_model"] = (
+        ["report", tmp / "model_edited.json", "-o", dest], dest, ["checksum"], "model_edited.json"
+    )  # fmt: skip
+    bad_tb = tmp / "non_numeric.csv"
+    dest = tmp / "fleet_bad_testbed"
+    out["fleet_bad_testbed"] = (
+        ["fit-devices", bad_tb, "--devices", files[0].parent, "-o", dest], dest, ["row 4"],
+        bad_tb.name,
+    )  # fmt: skip
+    return out
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory, linear_model, linear_files):
+    tmp = tmp_path_factory.mktemp("bad")
+    cases = _cases(tmp, linear_model, *linear_files)
+    with ThreadPoolExecutor(4) as pool:
+        done = pool.map(lambda c: run_cascal(*c[0]), cases.values())
+        results = dict(zip(cases, done, strict=True))
+    return cases, results
+
+
+ALL = [
+    *FIT_CASES,
+    "device_outside_testbed",
+    "model_truncated",
+    "model_edited",
+    "model_newer",
+    "model_older",
+    "model_not_json",
+    "model_other_json",
+    "model_missing",
+    "readings_non_numeric",
+    "readings_out_of_range_refused",
+    "report_edited_model",
+    "fleet_bad_testbed",
+]
+
+
+@pytest.mark.parametrize("name", ALL)
+def test_bad_input_exits_2_with_one_line(runs, name):
+    cases, results = runs
+    argv, dest, words, file_name = cases[name]
+    res = results[name]
+    assert res.returncode == 2, (res.stdout, res.stderr)
+    err = res.stderr.strip()
+    assert "Traceback" not in res.stderr
+    assert "\n" not in err, err
+    assert err.startswith(f"cascal {argv[0]}: error: "), err
+    if name not in NO_FILE_NAMED:
+        assert file_name in err, err
+    for w in words:
+        assert w in err, (w, err)
+    assert not Path(dest).exists(), f"{dest} was written"
+
+
+def test_every_case_is_checked(runs):
+    cases, _ = runs
+    assert sorted(cases) == sorted(ALL)

@@ -1,0 +1,122 @@
+"""``cascal fit`` and ``cascal correct`` end to end, against the simulated truth and
+against the library in memory."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from cli_helpers import run_cascal
+
+from cascal.io.csvout import auto_decimals
+from cascal.io.data import read_readings, read_stage, read_table
+from cascal.io.modelfile import load_model, save_model
+from cascal.workflow import correct, fit_model
+
+
+@pytest.fixture(scope="module")
+def corrected(linear_model, linear_files, tmp_path_factory):
+    _, readings = linear_files
+    out = tmp_path_factory.mktemp("corrected") / "out.csv"
+    res = run_cascal("correct", linear_model, readings, "-o", out)
+    assert res.returncode == 0, res.stderr
+    return res, read_table(out, ("reading", "corrected", "u", "U", "out_of_range"))
+
+
+def test_correction_beats_raw_readings_tenfold_and_U_covers(corrected, linear_case):
+    _, table = corrected
+    reading, fixed, u, U, out = table.columns
+    assert table.source.columns == ("reading", "corrected", "u", "U", "out_of_range")
+    truth = linear_case.truth  # the true map at each reading: device reading -> position
+    inside = out == 0
+    raw = np.sqrt(np.mean((reading - truth)[inside] ** 2))
+    err = (fixed - truth)[inside]
+    assert np.sqrt(np.mean(err**2)) * 10 <= raw
+    assert np.mean(np.abs(err) <= U[inside]) >= 0.90
+    np.testing.assert_allclose(U, 2 * u, atol=2e-12)
+
+
+def test_out_of_range_readings_are_flagged_and_warned(corrected, linear_case, linear_model):
+    res, table = corrected
+    reading, *_, out = table.columns
+    lo, hi = load_model(linear_model).calibrated_range
+    np.testing.assert_array_equal(out == 1, (reading < lo) | (reading > hi))
+    n_out = int(np.sum(out))
+    assert n_out == 1  # the demo puts one reading beyond the device's calibrated range
+    assert f"warning: {n_out} of {reading.size} readings lie outside" in res.stderr
+    assert f"row {reading.size + 1}" in res.stderr
+
+
+def test_command_output_equals_library_in_memory(corrected, linear_files, linear_case):
+    """The command's numbers are the in-memory fit's, up to the decimals written."""
+    files, readings = linear_files
+    res, table = corrected
+    model = fit_model([read_stage(f) for f in files])
+    c = correct(model, read_readings(readings).columns[0])
+    decimals = auto_decimals([c.reading, c.corrected], c.u)
+    assert f"({decimals} decimals)" in res.stdout
+    tol = 0.5 * 10.0**-decimals + 1e-15
+    np.testing.assert_allclose(table.columns[1], c.corrected, rtol=0, atol=tol)
+    np.testing.assert_allclose(table.columns[2], c.u, rtol=0, atol=tol)
+
+
+@pytest.mark.parametrize("method", ["bayes", "homoscedastic", "lut"])
+def test_fit_save_load_correct_is_bit_identical(method, linear_files, linear_case, tmp_path):
+    files, _ = linear_files
+    model = fit_model([read_stage(f) for f in files], method=method, n_restarts=2)
+    loaded = load_model(save_model(tmp_path / "m.json", model))
+    r = linear_case.readings
+    a, b = correct(model, r), correct(loaded, r)
+    np.testing.assert_array_equal(a.corrected, b.corrected)
+    np.testing.assert_array_equal(a.u, b.u)
+    np.testing.assert_array_equal(a.out_of_range, b.out_of_range)
+    big = np.resize(r, 50_000)  # enough readings for the interpolation table
+    np.testing.assert_array_equal(correct(model, big).corrected, correct(loaded, big).corrected)
+    exact = model.fitted.correct(r, return_std=method != "lut")
+    again = loaded.fitted.correct(r, return_std=method != "lut")
+    np.testing.assert_array_equal(np.asarray(exact), np.asarray(again))
+    assert loaded.method == method
+
+
+def test_lut_leaves_u_empty_and_says_so(linear_files, tmp_path):
+    files, readings = linear_files
+    model, out = tmp_path / "lut.json", tmp_path / "lut.csv"
+    assert run_cascal("fit", *files, "-o", model, "--method", "lut").returncode == 0
+    res = run_cascal("correct", model, readings, "-o", out)
+    assert res.returncode == 0, res.stderr
+    assert "method lut gives no uncertainty" in res.stderr
+    rows = out.read_text().splitlines()
+    assert rows[0] == "reading,corrected,u,U,out_of_range"
+    assert all(r.split(",")[2:4] == ["", ""] for r in rows[1:])
+
+
+def test_columns_picked_by_name_and_empty_out_of_range(linear_case, tmp_path):
+    st0, st1 = linear_case.stages
+    a = tmp_path / "tb.csv"
+    a.write_text(
+        "time,reference,testbed,temp\n"
+        + "".join(
+            f"{i},{y!r},{x!r},20.0\n"
+            for i, (x, y) in enumerate(zip(st0.x.tolist(), st0.y.tolist(), strict=True))
+        )
+    )
+    b = tmp_path / "dev.csv"
+    b.write_text(
+        "device,testbed\n"
+        + "".join(f"{x!r},{y!r}\n" for x, y in zip(st1.x.tolist(), st1.y.tolist(), strict=True))
+    )
+    model = tmp_path / "m.json"
+    res = run_cascal(
+        "fit", a, b, "-o", model, "--x-column", "testbed", "--x-column", "device",
+        "--y-column", "reference", "--y-column", "testbed", "--restarts", "2",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "Stage 0 (" in res.stdout and "129 rows, 43 points" in res.stdout
+    readings = tmp_path / "r.csv"
+    readings.write_text("id,reading\n1,0.5\n2,-3.0\n")
+    out = tmp_path / "o.csv"
+    res = run_cascal("correct", model, readings, "-o", out, "--column", "reading",
+                     "--out-of-range", "empty")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    rows = out.read_text().splitlines()
+    assert rows[2].split(",")[1:] == ["", "", "", "1"]
+    assert rows[1].split(",")[-1] == "0" and rows[1].split(",")[1] != ""

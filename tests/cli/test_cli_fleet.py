@@ -1,0 +1,70 @@
+"""``cascal fit-devices``: one test-bed fit, devices in parallel, a bad file skipped."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+from cli_helpers import run_cascal
+
+from cascal.demo import fleet_demo
+from cascal.io.csvout import write_columns
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("fleet")
+    testbed, devices = fleet_demo(0, n_devices=3)
+    tb = tmp / "testbed.csv"
+    write_columns(tb, dict(zip(testbed.columns, (testbed.x, testbed.y), strict=True)), decimals=14)
+    folder = tmp / "devices"
+    for d in devices:
+        write_columns(folder / d.file, dict(zip(d.columns, (d.x, d.y), strict=True)), decimals=14)
+    (folder / "device99.csv").write_text("device,testbed\n0.1,0.1\n0.2,oops\n0.3,0.3\n")
+    (folder / "notes.txt").write_text("not a device file")
+    out = tmp / "out"
+    res = run_cascal("fit-devices", tb, "--devices", folder, "-o", out, "--jobs", "2",
+                     "--restarts", "2")  # fmt: skip
+    return tmp, tb, folder, out, res
+
+
+def test_bad_device_is_reported_and_skipped(fleet):
+    *_, out, res = fleet
+    assert res.returncode == 1, res.stderr  # some devices were skipped
+    assert "Traceback" not in res.stderr
+    assert "skipped device device99: " in res.stderr and "row 3" in res.stderr
+    assert "3 of 4 devices calibrated" in res.stdout
+    assert sorted(p.name for p in (out / "devices").iterdir()) == [
+        "device01.json", "device02.json", "device03.json",
+    ]  # fmt: skip
+    assert (out / "testbed.json").exists()
+
+
+def test_fleet_summary(fleet):
+    *_, out, _ = fleet
+    with open(out / "fleet_summary.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["device"] for r in rows] == ["device01", "device02", "device03", "device99"]
+    assert [r["status"] for r in rows] == ["ok", "ok", "ok", "error"]
+    for r in rows[:3]:
+        assert float(r["length_scale"]) > 0 and float(r["noise_variance"]) >= 0
+        assert float(r["rms_correction"]) > 1e-4  # the paper's errors: centimetres
+        assert 0 < float(r["max_u"]) < 1e-3
+        assert r["points"] == "100"
+    assert "oops" in rows[3]["error"] and rows[3]["model"] == ""
+
+
+def test_device_model_equals_a_plain_fit_of_both_stages(fleet):
+    """The test bed is fitted once and reused; with the same seed the device's model is
+    the one ``cascal fit TESTBED DEVICE`` gives, whatever the number of workers."""
+    tmp, tb, folder, out, _ = fleet
+    single = tmp / "single.json"
+    res = run_cascal("fit", tb, folder / "device02.csv", "-o", single, "--restarts", "2")
+    assert res.returncode == 0, res.stderr
+    a = json.loads(single.read_text())
+    b = json.loads((out / "devices" / "device02.json").read_text())
+    assert a["stages"] == b["stages"]
+    assert a["calibrated_range"] == b["calibrated_range"]
+    tb_model = json.loads((out / "testbed.json").read_text())
+    assert tb_model["stages"][0] == b["stages"][0]

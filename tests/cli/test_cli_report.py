@@ -1,0 +1,64 @@
+"""``cascal report``: one self-contained HTML page, rendered in headless Chromium."""
+
+from __future__ import annotations
+
+import base64
+import io
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+from cli_helpers import run_cascal
+from PIL import Image
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.fixture(scope="module")
+def report(linear_model, tmp_path_factory):
+    out = tmp_path_factory.mktemp("report") / "report.html"
+    res = run_cascal("report", linear_model, "-o", out)
+    assert res.returncode == 0, res.stderr
+    return out
+
+
+def test_report_is_self_contained(report):
+    text = report.read_text()
+    srcs = re.findall(r'src="([^"]*)"', text)
+    assert len(srcs) == 3  # two stages and the final correction
+    assert all(s.startswith("data:image/png;base64,") for s in srcs)
+    assert not re.search(r'(src|href)="(https?:|file:|/)', text)
+    for s in srcs:
+        img = Image.open(io.BytesIO(base64.b64decode(s.split(",", 1)[1])))
+        assert img.size[0] > 500 and img.size[1] > 300
+    for words in ("Stage 0", "Stage 1", "length_scale", "noise_variance", "SHA-256",
+                  "Stretches where the reference could not measure", "U = 2u"):  # fmt: skip
+        assert words in text
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (apt-get install chromium)")
+def test_report_renders_with_figures_in_chromium(report, tmp_path):
+    shot = tmp_path / "shot.png"
+    subprocess.run(
+        [
+            CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+            "--no-first-run", "--disable-background-networking", "--disable-component-update",
+            "--disable-sync", f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}",
+            "--window-size=1200,2000", report.resolve().as_uri(),
+        ],
+        capture_output=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert shot.exists(), "chromium wrote no screenshot"
+    rgb = np.asarray(Image.open(shot).convert("RGB"), dtype=float)
+    assert rgb.shape[:2] == (2000, 1200)
+    gray = rgb.mean(axis=2)
+    assert gray.std() > 20  # not blank
+    assert np.mean(gray < 200) > 0.02  # text, lines and figures, not a white page
+    # The figures: matplotlib's blue fit lines and 95 % bands.
+    r, b = rgb[..., 0], rgb[..., 2]
+    blue = (b - r > 25) & (b > 150)
+    assert blue.sum() > 20000, "no figure (blue fit line or band) in the screenshot"
+    rows = np.flatnonzero(blue.any(axis=1))
+    assert rows.max() - rows.min() > 600  # more than one figure down the page

@@ -1,0 +1,125 @@
+"""CSV input: parsing, row numbers and columns in messages, repeated readings."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+
+from cascal.errors import InputError
+from cascal.io import data as data_mod
+from cascal.io.csvout import write_columns
+from cascal.io.data import read_readings, read_stage, read_table
+from cascal.validation import aggregate_repeats
+
+
+def _write(tmp_path, text, name="s.csv"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_stage_in_column_order_with_provenance(tmp_path):
+    p = _write(tmp_path, "tb,ref\n3,3.5\n1,1.2\n2,2.1\n")
+    s = read_stage(p)
+    np.testing.assert_array_equal(s.x, [1, 2, 3])
+    np.testing.assert_array_equal(s.y, [1.2, 2.1, 3.5])
+    np.testing.assert_array_equal(s.rows, [3, 4, 2])
+    assert s.noise is None and list(s.counts) == [1, 1, 1]
+    assert s.source.columns == ("tb", "ref") and s.source.rows == 3
+    assert s.source.sha256 == hashlib.sha256(p.read_bytes()).hexdigest()
+
+
+def test_repeats_are_averaged_and_their_spread_is_known_noise(tmp_path):
+    p = _write(tmp_path, "x,y\n1,1.0\n2,2.0\n1,1.2\n3,3.0\n1,1.4\n2,2.2\n")
+    s = read_stage(p)
+    np.testing.assert_array_equal(s.x, [1, 2, 3])
+    np.testing.assert_allclose(s.y, [1.2, 2.1, 3.0])
+    # variance of the mean: sample variance (ddof 1) / count; 0 for a single reading
+    np.testing.assert_allclose(s.noise, [np.var([1.0, 1.2, 1.4], ddof=1) / 3, 0.02 / 2, 0.0])
+    assert list(s.counts) == [3, 2, 1] and list(s.rows) == [2, 3, 5]
+
+
+def test_aggregate_repeats_against_a_loop(rng):
+    x = rng.integers(0, 20, 200).astype(float)
+    y = x + rng.normal(0, 0.1, x.size)
+    rep = aggregate_repeats(x, y)
+    for k, v in enumerate(rep.x):
+        grp = y[x == v]
+        assert rep.counts[k] == grp.size and rep.first[k] == np.flatnonzero(x == v)[0]
+        np.testing.assert_allclose(rep.y[k], grp.mean(), rtol=1e-14)
+        want = grp.var(ddof=1) / grp.size if grp.size > 1 else 0.0
+        np.testing.assert_allclose(rep.noise[k], want, rtol=1e-12, atol=1e-300)
+
+
+def test_columns_by_name_semicolons_bom_crlf_and_blank_lines(tmp_path):
+    p = tmp_path / "s.csv"
+    p.write_bytes("\ufefftime;ref;tb\r\n0;1.1;1\r\n\r\n1;2.2;2\r\n2;3.1;3\r\n".encode())
+    s = read_stage(p, x_column="tb", y_column="ref")
+    np.testing.assert_allclose(s.y, [1.1, 2.2, 3.1])
+    assert list(s.rows) == [2, 4, 5]
+    with pytest.raises(InputError, match="extra columns"):
+        read_stage(p)
+
+
+def test_only_x_column_named_takes_the_other(tmp_path):
+    p = _write(tmp_path, "ref,tb\n1.1,1\n2.2,2\n3.1,3\n")
+    s = read_stage(p, x_column="tb")
+    np.testing.assert_allclose(s.y, [1.1, 2.2, 3.1])
+    assert s.source.columns == ("tb", "ref")
+
+
+def test_periodic_stage_is_unwrapped_to_the_reading(tmp_path):
+    p = _write(tmp_path, "enc,ref\n0.5,0.6\n180,180.1\n359.9,0.05\n")
+    s = read_stage(p, period=360.0)
+    np.testing.assert_allclose(s.y, [0.6, 180.1, 360.05])
+
+
+@pytest.mark.parametrize(
+    ("text", "row", "words"),
+    [
+        ("a,b\n1,1\n2,2\n3,x\n", 4, "expected a number, got 'x'"),
+        ("a,b\n1,1\n2,2\n3\n", 4, "missing cells"),
+        ("a,b\n1,1\n2,1\n3,3\n", 3, "not above"),
+        ("a,b\n1,1\n2,2\n", 3, "at least 3 data rows"),
+        ("a,b\n1,1\n2,2\n3,1e999\n", 4, "finite"),
+    ],
+)
+def test_errors_name_file_and_row(tmp_path, text, row, words):
+    p = _write(tmp_path, text)
+    with pytest.raises(InputError, match=words) as exc:
+        read_stage(p)
+    assert exc.value.row == row and exc.value.file == str(p)
+    assert str(exc.value).startswith(f"{p}, row {row}")
+
+
+def test_fast_path_and_exact_path_agree(tmp_path, monkeypatch):
+    v = np.random.default_rng(0).normal(size=6000)
+    p = tmp_path / "r.csv"
+    write_columns(p, {"reading": v}, decimals=15)
+    fast = read_readings(p)
+    monkeypatch.setattr(data_mod, "_FAST_LINES", 10**9)
+    slow = read_readings(p)
+    np.testing.assert_array_equal(fast.columns[0], slow.columns[0])
+    np.testing.assert_array_equal(fast.rows, slow.rows)
+    np.testing.assert_allclose(fast.columns[0], v, rtol=0, atol=1e-15)
+
+
+def test_fast_path_errors_are_located_exactly(tmp_path):
+    lines = ["reading", *[f"{i / 7:.6f}" for i in range(6000)]]
+    lines[4321] = "1.5e"
+    p = _write(tmp_path, "\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"'1\.5e'") as exc:
+        read_readings(p)
+    assert exc.value.row == 4322
+    lines[4321] = "nan"
+    p = _write(tmp_path, "\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="finite") as exc:
+        read_readings(p)
+    assert exc.value.row == 4322
+
+
+def test_read_table_reports_unreadable_file(tmp_path):
+    with pytest.raises(InputError, match="cannot read"):
+        read_table(tmp_path / "missing.csv", (None,))

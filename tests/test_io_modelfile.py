@@ -1,0 +1,193 @@
+"""Model files: exact round trip, checksum, schema versions, schema and consistency checks."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cascal.demo import linear_demo
+from cascal.errors import InputError, ModelFileError
+from cascal.gp import FittedGP, fit_gp
+from cascal.io import modelfile as mf
+from cascal.io.data import Source, StageData
+from cascal.io.modelfile import load_model, model_to_dict, save_model
+from cascal.io.schema import SchemaError, load_schema, validate
+from cascal.kernels import Constant, Matern32, Periodic, SquaredExp
+from cascal.noise import Dense, Diagonal
+from cascal.validation import aggregate_repeats
+from cascal.workflow import fit_model
+
+
+def _stages():
+    case = linear_demo(0)
+    out = []
+    for st in case.stages:
+        rep = aggregate_repeats(st.x, st.y)
+        noise = rep.noise if np.any(rep.counts > 1) else None
+        src = Source(st.file, "ab" * 32, st.x.size, st.columns)
+        out.append(StageData(rep.x, rep.y, noise, rep.counts, rep.first + 2, src))
+    return out
+
+
+@pytest.fixture(scope="module")
+def models():
+    stages = _stages()
+    return {m: fit_model(stages, method=m, n_restarts=1) for m in ("bayes", "homoscedastic", "lut")}
+
+
+@pytest.fixture
+def saved(models, tmp_path):
+    return save_model(tmp_path / "model.json", models["bayes"])
+
+
+def _rewrite(path, change):
+    """Edit a model file and give it a valid checksum again (as a forger would)."""
+    doc = json.loads(path.read_text())
+    change(doc)
+    body = {k: v for k, v in doc.items() if k != "checksum"}
+    doc["checksum"]["value"] = mf._checksum(body)
+    path.write_text(json.dumps(doc))
+
+
+@pytest.mark.parametrize("method", ["bayes", "homoscedastic", "lut"])
+def test_round_trip_is_exact(models, method, tmp_path):
+    model = models[method]
+    loaded = load_model(save_model(tmp_path / "m.json", model))
+    a, b = model_to_dict(model), model_to_dict(loaded)
+    a["provenance"].pop("created"), b["provenance"].pop("created")
+    # A dense known noise passes Dense's round-off repair again on load (within 1e-15
+    # relative); it serves plots only, predictions use the stored L and alpha.
+    noises = [
+        (sa["model"].pop("known_noise", None), sb["model"].pop("known_noise", None))
+        for sa, sb in zip(a["stages"], b["stages"], strict=True)
+    ]
+    assert a == b
+    for na, nb in noises:
+        assert json.dumps(na)[:40] == json.dumps(nb)[:40]  # same structure
+    for m0, m1 in zip(model.fitted.models, loaded.fitted.models, strict=True):
+        if isinstance(m0, FittedGP):
+            assert m0.kernel == m1.kernel and m0.mean == m1.mean
+            np.testing.assert_array_equal(m0.L, m1.L)
+            np.testing.assert_array_equal(m0.alpha, m1.alpha)
+            assert (m0.noise is None) == (m1.noise is None)
+            if m0.noise is not None:
+                n0, n1 = m0.noise.dense(m0.x.size), m1.noise.dense(m1.x.size)
+                np.testing.assert_allclose(n1, n0, rtol=0, atol=1e-12 * np.abs(n0).max())
+            assert m0.optimization.value == m1.optimization.value
+            assert len(m0.optimization.starts) == len(m1.optimization.starts)
+    assert loaded.sources == model.sources and loaded.unit == "m"
+    doc = json.loads((tmp_path / "m.json").read_text())
+    assert doc["schema_version"] == 1 and doc["provenance"]["cascal_version"]
+    assert doc["provenance"]["inputs"][0]["sha256"] == "ab" * 32
+
+
+def test_file_layout_is_readable(saved):
+    text = saved.read_text()
+    assert text.startswith('{\n  "schema_version": 1,')
+    assert '"cholesky": [\n' in text  # one row of L per line
+    assert text.count("\n") < 1000
+
+
+def test_composite_kernels_and_noise_round_trip():
+    k = (SquaredExp(0.2, 1e-4) + Periodic(1.5, 2e-5, period=0.5)) * Constant(3.0) + Matern32(
+        0.1, 1e-6
+    )
+    assert mf._kernel_from(json.loads(json.dumps(mf._kernel_dict(k)))) == k
+    C = np.array([[2.0, 0.5, 0.1], [0.5, 1.0, 0.2], [0.1, 0.2, 3.0]])
+    n = Dense(C) + Diagonal(np.array([0.1, 0.2, 0.3]))
+    back = mf._noise_from(json.loads(json.dumps(mf._noise_dict(n, 3))))
+    np.testing.assert_allclose(back.dense(3), n.dense(3), rtol=1e-15)
+
+
+def test_fitted_gp_from_arrays_predicts_identically(rng):
+    x = np.sort(rng.uniform(0, 1, 30))
+    y = x + 0.01 * np.sin(6 * x) + rng.normal(0, 1e-4, 30)
+    gp = fit_gp(x, y, n_restarts=1)
+    back = FittedGP.from_arrays(
+        gp.x.tolist(), gp.y, kernel=gp.kernel, mean=gp.mean, noise=None,
+        noise_variance=gp.noise_variance, L=gp.L.tolist(), alpha=gp.alpha,
+    )  # fmt: skip
+    xs = np.linspace(-0.1, 1.1, 57)
+    for a, b in zip(
+        gp.predict(xs, return_std=True), back.predict(xs, return_std=True), strict=True
+    ):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(InputError, match="expected L"):
+        FittedGP.from_arrays(x, y, kernel=gp.kernel, mean=gp.mean, noise=None,
+                             noise_variance=0.0, L=gp.L[:-1], alpha=gp.alpha)  # fmt: skip
+    with pytest.raises(InputError, match="lower-triangular"):
+        FittedGP.from_arrays(x, y, kernel=gp.kernel, mean=gp.mean, noise=None,
+                             noise_variance=0.0, L=gp.L.T, alpha=gp.alpha)  # fmt: skip
+
+
+def test_edited_file_fails_the_checksum(saved):
+    text = saved.read_text()
+    i = text.index('"alpha": [') + len('"alpha": [')
+    j = text.index(".", i) + 1  # the first decimal of the first weight
+    saved.write_text(text[:j] + str((int(text[j]) + 1) % 10) + text[j + 1 :])
+    with pytest.raises(ModelFileError, match="checksum mismatch"):
+        load_model(saved)
+
+
+def test_truncated_file(saved):
+    saved.write_text(saved.read_text()[:-40])
+    with pytest.raises(ModelFileError, match="truncated"):
+        load_model(saved)
+
+
+@pytest.mark.parametrize(
+    ("version", "words"), [(2, "newer than this cascal"), (0, "not supported"), ("1", "no integer")]
+)
+def test_other_schema_versions_are_refused(saved, version, words):
+    _rewrite(saved, lambda d: d.__setitem__("schema_version", version))
+    with pytest.raises(ModelFileError, match=words):
+        load_model(saved)
+
+
+def test_schema_violation_with_a_valid_checksum(saved):
+    _rewrite(saved, lambda d: d["stages"][1]["model"]["kernel"].__setitem__("length_scale", -1))
+    with pytest.raises(ModelFileError, match=r"schema 1: \$\.stages\[1\]\.model"):
+        load_model(saved)
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (lambda d: d["stages"][0]["model"]["cholesky"][3].append(0.5), "cholesky"),
+        (lambda d: d.__setitem__("calibrated_range", [0.0, 1.0]), "calibrated_range"),
+        (lambda d: d["stages"][1]["model"]["alpha"].pop(), "alpha"),
+        (lambda d: d.__setitem__("method", "lut"), "does not match the stage models"),
+        (lambda d: d["provenance"]["inputs"].pop(), "input files for 2 stages"),
+    ],
+)
+def test_inconsistent_arrays_with_a_valid_checksum(saved, change, words):
+    _rewrite(saved, change)
+    with pytest.raises(ModelFileError, match=f"inconsistent model file: .*{words}"):
+        load_model(saved)
+
+
+def test_nan_is_refused(saved):
+    saved.write_text(saved.read_text().replace('"jitter": 0.0', '"jitter": NaN', 1))
+    with pytest.raises(ModelFileError, match="NaN"):
+        load_model(saved)
+
+
+def test_schema_validator():
+    schema = load_schema("model", 1)
+    assert schema["properties"]["schema_version"] == {"const": 1}
+    with pytest.raises(SchemaError, match=r"\$\.a: expected number, got string"):
+        validate({"a": "x"}, {"type": "object", "properties": {"a": {"type": "number"}}})
+    with pytest.raises(SchemaError, match="unexpected 'b'"):
+        validate({"b": 1}, {"type": "object", "properties": {}, "additionalProperties": False})
+    with pytest.raises(SchemaError, match=r"\$\[1\]"):
+        validate([1, True], {"type": "array", "items": {"type": "number"}})
+    with pytest.raises(ValueError, match="not supported"):
+        validate(1, {"multipleOf": 2})
+    validate(1, {"oneOf": [{"type": "null"}, {"type": "integer", "minimum": 1}]})
+
+
+def test_shipped_schema_agrees_with_jsonschema(saved):
+    jsonschema = pytest.importorskip("jsonschema")
+    jsonschema.validate(json.loads(saved.read_text()), load_schema("model", 1))
