@@ -15,6 +15,7 @@ $(STAMP): pyproject.toml requirements-lock.txt
 demo: $(STAMP)
 	$(BIN)/cascal example --out out
 	$(BIN)/cascal demo --out out
+	$(BIN)/cascal study --trials 12000 --out out/study
 
 test: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks
@@ -23,6 +24,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python benchmarks/bench_fit.py
+	$(BIN)/python benchmarks/bench_correct.py
 	$(BIN)/python benchmarks/bench_study.py
 
 format: $(STAMP)

@@ -191,3 +191,18 @@ def test_schema_validator():
 def test_shipped_schema_agrees_with_jsonschema(saved):
     jsonschema = pytest.importorskip("jsonschema")
     jsonschema.validate(json.loads(saved.read_text()), load_schema("model", 1))
+
+
+def test_atomic_write_gives_the_usual_permissions(tmp_path):
+    import os
+
+    from cascal.io.atomic import write_text
+
+    mask = os.umask(0o022)
+    try:
+        path = write_text(tmp_path / "a.txt", "x")
+    finally:
+        os.umask(mask)
+    assert path.read_text() == "x"
+    assert (path.stat().st_mode & 0o777) == 0o644
+    assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]  # no temporary left behind
