@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from . import kernels, noise, simulation
+from ._version import __version__
 from .baselines import OffsetTable, fit_table
 from .cascade import Cascade, FittedCascade, Stage
 from .errors import CascalError, InputError, ModelFileError, NumericalError
@@ -11,9 +12,8 @@ from .io.modelfile import CalibrationModel, load_model, save_model
 from .kernels import Constant, Matern32, Matern52, Periodic, SquaredExp
 from .means import Mean
 from .noise import Dense, Diagonal
+from .study import run_study
 from .validation import aggregate_repeats
-
-__version__ = "0.1.0"
 
 __all__ = [
     "CalibrationModel",
@@ -43,6 +43,7 @@ __all__ = [
     "load_model",
     "log_marginal_likelihood",
     "noise",
+    "run_study",
     "save_model",
     "simulation",
 ]

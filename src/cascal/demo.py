@@ -88,15 +88,20 @@ def linear_demo(seed: int = 0) -> DemoCase:
         "m",
         "se",
         None,
-        (
-            DemoStage("reference_testbed.csv", ("testbed", "reference"), x0, y0),
-            DemoStage("testbed_device.csv", ("device", "testbed"), x1, y1),
-        ),
+        _two_stages(x0, y0, x1, y1),
         readings,
         device.inverse(readings, -0.5, 1.5),
         (0.42, 0.58),
         testbed,
         device,
+    )
+
+
+def _two_stages(x0, y0, x1, y1) -> tuple[DemoStage, DemoStage]:
+    """The reference-test bed and test bed-device files of a two-stage case."""
+    return (
+        DemoStage("reference_testbed.csv", ("testbed", "reference"), x0, y0),
+        DemoStage("testbed_device.csv", ("device", "testbed"), x1, y1),
     )
 
 
@@ -121,10 +126,7 @@ def rotary_demo(seed: int = 0) -> DemoCase:
         "deg",
         "periodic",
         360.0,
-        (
-            DemoStage("reference_testbed.csv", ("testbed", "reference"), x0, y0),
-            DemoStage("testbed_device.csv", ("device", "testbed"), x1, y1),
-        ),
+        _two_stages(x0, y0, x1, y1),
         readings,
         device.inverse(readings, -10.0, 370.0),
         (340.0, 20.0),

@@ -13,7 +13,6 @@ from dataclasses import asdict, dataclass, field
 from itertools import combinations
 
 import numpy as np
-from scipy.stats import wilcoxon
 
 from .cascade import METHODS, Cascade
 from .errors import CascalError
@@ -134,6 +133,8 @@ def summarize(costs: dict[str, np.ndarray]) -> dict:
         {"a vs b": {fraction_a_better, wilcoxon_p}}}``; the Wilcoxon signed-rank test is
         two-sided on the paired differences.
     """
+    from scipy.stats import wilcoxon  # here: importing scipy.stats costs 0.5 s at start-up
+
     out: dict = {"n_trials": len(next(iter(costs.values()))), "methods": {}, "pairs": {}}
     for m, j in costs.items():
         j = np.asarray(j, dtype=float)

@@ -15,7 +15,7 @@ import math
 import numpy as np
 from matplotlib.figure import Figure
 
-from . import __version__
+from ._version import __version__
 from .io.modelfile import CalibrationModel
 from .reportdata import CurveView, StageView, correction_curve, stage_views
 
