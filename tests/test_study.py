@@ -119,3 +119,38 @@ def test_cli_study_writes_outputs(tmp_path):
         check=False,
     )
     assert again.returncode == 2 and "Traceback" not in again.stderr
+
+
+def test_progress_prints_sparse_plain_lines_when_not_a_terminal():
+    import io
+
+    from cascal.cli_study import Progress
+
+    stream = io.StringIO()
+    p = Progress(stream=stream, every_s=3600.0)
+    for done in range(0, 101, 10):
+        p(done, 100)
+    p.close()
+    lines = stream.getvalue().splitlines()
+    # the first call only starts the clock; the rest wait an hour, except the last
+    assert len(lines) == 1
+    assert lines[0].startswith("100/100 trials (100 %)") and "trials/s" in lines[0]
+    assert "ETA" in lines[0]
+
+
+def test_progress_draws_a_bar_with_rate_on_a_terminal():
+    import io
+
+    from cascal.cli_study import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    stream = Tty()
+    p = Progress(stream=stream)
+    for done in (0, 5, 10):
+        p(done, 10)
+    p.close()
+    out = stream.getvalue()
+    assert "10/10" in out and "trial/s" in out
