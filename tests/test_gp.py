@@ -344,7 +344,7 @@ def test_hyperparameters_dict(data):
 def test_predict_many_points_mean_only_matches_std_path(data):
     x, y = data
     fit = fit_gp(x, y, hyperparameters={"length_scale": L0, "variance": V0, "noise_variance": SN0})
-    xs = np.linspace(-0.5, 1.5, 100_000)  # several chunks of 32768
+    xs = np.linspace(-0.5, 1.5, 100_000)  # many blocks
     mean = fit.predict(xs)
     mean2, std = fit.predict(xs, return_std=True)
     assert mean.shape == std.shape == (100_000,)
@@ -437,3 +437,43 @@ def test_objective_hessian(kname, nform, learn, data, vec, dense):
         e[j] = h
         fd[:, j] = (obj.value_and_grad(theta + e)[1] - obj.value_and_grad(theta - e)[1]) / (2 * h)
     assert_allclose(H, fd, rtol=1e-5, atol=1e-6 * np.max(np.abs(fd)))
+
+
+@pytest.mark.parametrize("learn", [True, False])
+def test_objective_hessian_against_textbook_formula(learn, data, dense):
+    """Gradient and Hessian of the dense-noise objective against explicit inverses."""
+    x, y = data
+    kernel = SquaredExp(0.3, 2e-4)
+    obj = Objective(x, y - x, kernel, Dense(dense), learn)
+    sn2 = 3e-6
+    theta = np.r_[kernel.theta, np.log(sn2)] if learn else kernel.theta
+    _, g, H = obj.value_grad_hess(theta)
+    d2 = np.subtract.outer(x, x) ** 2 / 0.3**2
+    rho = np.exp(-0.5 * d2)
+    sf2 = 2e-4
+    dK = [sf2 * rho * d2, sf2 * rho] + ([sn2 * np.eye(x.size)] if learn else [])
+    Kt = sf2 * rho + obj.known_matrix + (sn2 * np.eye(x.size) if learn else 0.0)
+    Ki = np.linalg.inv(Kt)
+    a = Ki @ (y - x)
+    p = len(dK)
+    d2K = [[np.zeros_like(Kt) for _ in range(p)] for _ in range(p)]
+    d2K[0][0] = sf2 * rho * d2 * (d2 - 2.0)
+    d2K[0][1] = d2K[1][0] = dK[0]
+    d2K[1][1] = dK[1]
+    if learn:
+        d2K[2][2] = dK[2]
+    g_ref = np.array([0.5 * a @ Kj @ a - 0.5 * np.trace(Ki @ Kj) for Kj in dK])
+    H_ref = np.array(
+        [
+            [
+                0.5 * a @ d2K[i][j] @ a
+                - a @ dK[i] @ Ki @ dK[j] @ a
+                + 0.5 * np.trace(Ki @ dK[i] @ Ki @ dK[j])
+                - 0.5 * np.trace(Ki @ d2K[i][j])
+                for j in range(p)
+            ]
+            for i in range(p)
+        ]
+    )
+    assert_allclose(g, g_ref, rtol=1e-9, atol=1e-9 * np.max(np.abs(g_ref)))
+    assert_allclose(H, H_ref, rtol=1e-9, atol=1e-9 * np.max(np.abs(H_ref)))

@@ -8,7 +8,7 @@ import pytest
 from cascal.kernels import Matern52, SquaredExp
 from cascal.likelihood import Objective
 from cascal.noise import Dense
-from cascal.optimize import latin_hypercube, maximize, newton_maximize
+from cascal.optimize import _ascent_step, latin_hypercube, maximize, newton_maximize
 
 
 def quadratic(center, A):
@@ -87,3 +87,25 @@ def test_newton_and_lbfgsb_reach_the_same_optimum(kernel, profile):
     assert all(s.converged for s in newton.starts)
     best = max(newton.starts, key=lambda s: s.value)
     np.testing.assert_array_equal(best.theta, newton.theta)
+
+
+@pytest.mark.parametrize(
+    "H",
+    [
+        [[-3.0, 1.0, 0.2], [1.0, -2.0, 0.1], [0.2, 0.1, -0.5]],  # negative definite: Cholesky
+        [[2.0, 0.5], [0.5, -1.0]],  # indefinite: eigenvalue magnitudes
+        [[-1.0, 0.0], [0.0, -1e-12]],  # nearly singular: floored magnitudes
+    ],
+)
+def test_ascent_step_matches_eigenvalue_magnitude_step(H):
+    H = np.array(H)
+    g = np.linspace(0.3, -0.7, len(H))
+    step, decrement = _ascent_step(H.tolist(), g.tolist())
+    lam, V = np.linalg.eigh(H)
+    mag = np.maximum(np.abs(lam), 1e-8 * np.max(np.abs(lam)))
+    ref = V @ ((V.T @ g) / mag)
+    np.testing.assert_allclose(step, ref, rtol=1e-12)
+    if np.all(lam < -1e-8 * np.max(np.abs(lam))):
+        assert decrement == pytest.approx(float(g @ ref), rel=1e-12)
+    else:
+        assert decrement is None

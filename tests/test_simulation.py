@@ -185,3 +185,10 @@ def test_simulation_deterministic():
     for u, v in zip((*a.d1, *a.d2), (*b.d1, *b.d2), strict=True):
         assert np.array_equal(u, v)
     assert not np.array_equal(a.d1[0], c.d1[0])
+
+
+def test_value_and_slope_equal_separate_evaluations(trial):
+    y = np.linspace(0.0, 1.0, 2001)  # several blocks
+    value, slope = trial.device_map.value_and_slope(y)
+    np.testing.assert_array_equal(value, trial.device_map(y))
+    np.testing.assert_array_equal(slope, trial.device_map.slope(y))

@@ -8,6 +8,8 @@ kernel variance profiled out in closed form the search has one dimension less.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.linalg import lapack
 
@@ -133,79 +135,92 @@ class Objective:
         if self.profile:
             return self._profiled_hess(theta)
         n, r = self.n, self.r
-        k = self.kernel.unit(float(np.exp(theta[0])))  # type: ignore[attr-defined]
+        k = self.kernel.unit(math.exp(theta[0]))  # type: ignore[attr-defined]
         rho, r1, r2 = k.correlation2(self.d)
-        sf2 = float(np.exp(theta[1]))
+        sf2 = math.exp(theta[1])
         Kt = sf2 * rho
         if self.known_matrix is not None:
             Kt += self.known_matrix
-        sn2 = float(np.exp(theta[2])) if self.learn_noise else 0.0
+        sn2 = math.exp(theta[2]) if self.learn_noise else 0.0
         Kt.flat[:: n + 1] += sn2
         L = self._factor(Kt)
         a = linalg.cho_solve(L, r)
         lml = -0.5 * float(r @ a) - 0.5 * linalg.logdet(L) - 0.5 * n * _LOG2PI
         Kinv = linalg.inverse_from_cholesky(L)
-        # dK/dtheta: sf2 r1, sf2 rho, sn2 I; second: K_ll = sf2 r2, K_ls = sf2 r1, K_ss = sf2 rho,
-        # K_nn = sn2 I, others 0.
-        K1, K2 = sf2 * r1, sf2 * rho
-        M1, M2 = Kinv @ K1, Kinv @ K2
-        v = [K1 @ a, K2 @ a]
-        M = [M1, M2]
-        tr = [float(np.trace(M1)), float(np.trace(M2))]
-        if self.learn_noise:
-            v.append(sn2 * a)
-            M.append(sn2 * Kinv)
+        # dKt/dtheta: sf2 r1, sf2 rho, sn2 I; second: K_ll = sf2 r2, K_ls = sf2 r1,
+        # K_ss = sf2 rho, K_nn = sn2 I, others 0. Q_i = Kt^-1 rho_i, so M_i = sf2 Q_i.
+        Q1, Q2 = Kinv @ r1, Kinv @ rho
+        p = 3 if self.learn_noise else 2
+        V = np.empty((p, n))
+        np.matmul(r1, a, out=V[0])
+        np.matmul(rho, a, out=V[1])
+        V[:2] *= sf2
+        if p == 3:
+            np.multiply(a, sn2, out=V[2])
+        VKV = (V @ Kinv) @ V.T
+        VKV += VKV.T
+        VKV *= 0.5
+        av = V @ a
+        s2 = sf2 * sf2
+        t1, t2 = sf2 * float(np.trace(Q1)), sf2 * float(np.trace(Q2))
+        T = np.empty((p, p))
+        T[0, 0] = s2 * float(np.vdot(Q1, Q1.T))
+        T[0, 1] = s2 * float(np.vdot(Q1, Q2.T))
+        T[1, 1] = s2 * float(np.vdot(Q2, Q2.T))
+        tr = [t1, t2]
+        if p == 3:
             tr.append(sn2 * float(np.trace(Kinv)))
-        p = len(v)
-        w = [Kinv @ vi for vi in v]
-        g = np.array([0.5 * float(a @ v[i]) - 0.5 * tr[i] for i in range(p)])
-        H = np.empty((p, p))
-        for i in range(p):
-            for j in range(i, p):
-                H[i, j] = H[j, i] = -float(v[i] @ w[j]) + 0.5 * float(np.vdot(M[i], M[j].T))
+            T[0, 2] = sf2 * sn2 * float(np.vdot(Q1, Kinv))
+            T[1, 2] = sf2 * sn2 * float(np.vdot(Q2, Kinv))
+            T[2, 2] = sn2 * sn2 * float(np.vdot(Kinv, Kinv))
+        g = 0.5 * av - 0.5 * np.asarray(tr)
+        iu = np.triu_indices(p, 1)
+        T[iu[1], iu[0]] = T[iu]
+        H = 0.5 * T - VKV
         # second-derivative terms: 1/2 a^T K_ij a - 1/2 tr(Kt^-1 K_ij)
         H[0, 0] += 0.5 * sf2 * (float(a @ (r2 @ a)) - float(np.vdot(Kinv, r2)))
         H[0, 1] += g[0]
         H[1, 0] += g[0]
         H[1, 1] += g[1]
-        if self.learn_noise:
+        if p == 3:
             H[2, 2] += g[2]
         return lml, g, H
 
     def _profiled_hess(self, theta: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         # P = -n/2 log q - 1/2 log|A| + c, q = r^T A^-1 r, A = rho + g I, a_i = alpha^T A_i alpha.
         n, r = self.n, self.r
-        k = self.kernel.unit(float(np.exp(theta[0])))  # type: ignore[attr-defined]
+        k = self.kernel.unit(math.exp(theta[0]))  # type: ignore[attr-defined]
         rho, r1, r2 = k.correlation2(self.d)
-        gn = float(np.exp(theta[1]))
+        gn = math.exp(theta[1])
         A = rho
         A.flat[:: n + 1] += gn
         L = self._factor(A)
         al = linalg.cho_solve(L, r)
         q = float(r @ al)
-        lml = -0.5 * n * (np.log(q / n) + 1.0 + _LOG2PI) - 0.5 * linalg.logdet(L)
+        lml = -0.5 * n * (math.log(q / n) + 1.0 + _LOG2PI) - 0.5 * linalg.logdet(L)
         Ainv = linalg.inverse_from_cholesky(L)
         M1 = Ainv @ r1
-        v1, v2 = r1 @ al, gn * al
-        w1, w2 = Ainv @ v1, gn * (Ainv @ al)
-        a1, a2 = float(al @ v1), float(al @ v2)
+        v1 = r1 @ al
+        w1, wa = Ainv @ v1, Ainv @ al
+        a1, a2 = float(al @ v1), gn * float(al @ al)
         t1, t2 = float(np.trace(M1)), gn * float(np.trace(Ainv))
         c = 0.5 * n / q
         g = np.array([c * a1 - 0.5 * t1, c * a2 - 0.5 * t2])
         # d a_i / d theta_j = alpha^T A_ij alpha - 2 alpha^T A_i A^-1 A_j alpha
-        da11 = float(al @ (r2 @ al)) - 2.0 * float(v1 @ w1)
-        da12 = -2.0 * float(v1 @ w2)
-        da22 = a2 - 2.0 * float(v2 @ w2)
+        v1w1, v1wa, awa = float(v1 @ w1), float(v1 @ wa), float(al @ wa)
+        da11 = float(al @ (r2 @ al)) - 2.0 * v1w1
+        da12 = -2.0 * gn * v1wa
+        da22 = a2 - 2.0 * gn * gn * awa
         tr11 = float(np.vdot(M1, M1.T)) - float(np.vdot(Ainv, r2))
         tr12 = gn * float(np.vdot(M1, Ainv))
         tr22 = gn * gn * float(np.vdot(Ainv, Ainv)) - t2
+        h12 = c * (da12 + a1 * a2 / q) + 0.5 * tr12
         H = np.array(
             [
-                [c * (da11 + a1 * a1 / q) + 0.5 * tr11, c * (da12 + a1 * a2 / q) + 0.5 * tr12],
-                [0.0, c * (da22 + a2 * a2 / q) + 0.5 * tr22],
+                [c * (da11 + a1 * a1 / q) + 0.5 * tr11, h12],
+                [h12, c * (da22 + a2 * a2 / q) + 0.5 * tr22],
             ]
         )
-        H[1, 0] = H[0, 1]
         return lml, g, H
 
     def full_theta(self, theta: np.ndarray) -> np.ndarray:

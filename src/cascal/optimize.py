@@ -10,6 +10,7 @@ The best optimum wins; every start is reported.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -23,6 +24,8 @@ __all__ = ["OptimResult", "Start", "latin_hypercube", "maximize", "newton_maximi
 _RADIUS = 0.2
 #: First trust radius of a Newton run, log units.
 _RADIUS0 = 2.0
+#: A run this close (log units, every parameter) to an optimum already found stops there.
+_KNOWN = 0.01
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,45 +71,57 @@ def newton_maximize(
     Converges when the free gradient is below ``gtol``, the Newton decrement promises less
     than 1e-10 relative gain, or the steps stop changing the value. A run that comes within
     0.01 (log units) of an optimum in ``known`` stops there: it is converging to that optimum.
+    The few parameters live in Python floats: the loop's cost is the objective's.
     """
-    lo, hi = bounds[:, 0], bounds[:, 1]
-    theta = np.clip(np.asarray(theta0, dtype=float), lo, hi)
+    lo, hi = bounds[:, 0].tolist(), bounds[:, 1].tolist()
+    p = len(lo)
+    theta = [
+        min(max(t, a), b)
+        for t, a, b in zip(np.asarray(theta0, float).tolist(), lo, hi, strict=True)
+    ]
+    start = np.asarray(theta0)
     try:
-        f, g, H = value_grad_hess(theta)
+        f, g, H = _call(value_grad_hess, theta)
     except NumericalError:
-        return Start(np.asarray(theta0), theta, -np.inf, 1, False)
+        return Start(start, np.array(theta), -np.inf, 1, False)
     evals, radius, converged = 1, _RADIUS0, False
-    if not np.isfinite(f):
-        return Start(np.asarray(theta0), theta, -np.inf, evals, False)
+    if not math.isfinite(f):
+        return Start(start, np.array(theta), -np.inf, evals, False)
+    others = [k.theta.tolist() for k in known or ()]
     for _ in range(max_iter):
-        free = ~(((theta <= lo) & (g < 0)) | ((theta >= hi) & (g > 0)))
-        if not free.any() or np.max(np.abs(g[free])) < gtol:
+        free = [
+            i
+            for i in range(p)
+            if not ((theta[i] <= lo[i] and g[i] < 0) or (theta[i] >= hi[i] and g[i] > 0))
+        ]
+        if not free or max(abs(g[i]) for i in free) < gtol:
             converged = True
             break
-        step = np.zeros_like(theta)
-        lam, V = np.linalg.eigh(H[np.ix_(free, free)])
-        mag = np.maximum(np.abs(lam), 1e-8 * max(float(np.max(np.abs(lam))), 1e-300))
-        proj = V.T @ g[free]
-        if np.all(lam < 0) and float(proj @ (proj / mag)) < 2e-10 * max(1.0, abs(f)):
+        gf = [g[i] for i in free]
+        sf, decrement = _ascent_step([[H[i][j] for j in free] for i in free], gf)
+        if decrement is not None and decrement < 2e-10 * max(1.0, abs(f)):
             converged = True  # Newton decrement: the remaining gain is round-off
             break
-        if known and any(np.max(np.abs(theta - k.theta)) < 1e-2 for k in known):
+        if any(max(abs(a - b) for a, b in zip(theta, o, strict=True)) < _KNOWN for o in others):
             converged = True
             break
-        step[free] = V @ (proj / mag)
-        norm = float(np.linalg.norm(step))
+        step = [0.0] * p
+        for i, si in zip(free, sf, strict=True):
+            step[i] = si
+        norm = math.sqrt(sum(x * x for x in step))
         if norm > radius:
-            step *= radius / norm
-        trial = np.clip(theta + step, lo, hi)
-        d = trial - theta
-        pred = float(g @ d + 0.5 * d @ H @ d)
+            step = [x * (radius / norm) for x in step]
+        trial = [min(max(t + x, a), b) for t, x, a, b in zip(theta, step, lo, hi, strict=True)]
+        d = [a - b for a, b in zip(trial, theta, strict=True)]
+        Hd = [sum(hij * dj for hij, dj in zip(row, d, strict=True)) for row in H]
+        pred = sum(gi * di + 0.5 * di * hdi for gi, di, hdi in zip(g, d, Hd, strict=True))
         try:
-            ft, gt, Ht = value_grad_hess(trial)
+            ft, gt, Ht = _call(value_grad_hess, trial)
         except NumericalError:  # not factorisable there: treat as a failed step
-            ft, gt, Ht = -np.inf, g, H
+            ft, gt, Ht = -math.inf, g, H
         evals += 1
-        gain = ft - f if np.isfinite(ft) else -np.inf
-        dn = float(np.linalg.norm(d))
+        gain = ft - f if math.isfinite(ft) else -math.inf
+        dn = math.sqrt(sum(x * x for x in d))
         if gain > 0 or (gain == 0 and dn == 0):
             if gain > 0.75 * pred and dn > 0.9 * radius:
                 radius = min(4.0 * radius, 20.0)
@@ -120,7 +135,44 @@ def newton_maximize(
             if radius < 1e-10:
                 converged = True  # no ascent possible at this resolution
                 break
-    return Start(np.asarray(theta0), theta, float(f), evals, converged)
+    return Start(start, np.array(theta), float(f), evals, converged)
+
+
+def _call(vgh: Callable, theta: list[float]) -> tuple[float, list[float], list[list[float]]]:
+    f, g, H = vgh(np.array(theta))
+    return float(f), np.asarray(g, dtype=float).tolist(), np.asarray(H, dtype=float).tolist()
+
+
+def _ascent_step(H: list[list[float]], g: list[float]) -> tuple[list[float], float | None]:
+    """Step ``(-H)^-1 g`` and the Newton decrement ``g^T (-H)^-1 g`` where ``H`` is clearly
+    negative definite (a Cholesky factor of ``-H`` in floats); otherwise the step of the
+    eigenvalues' magnitudes (floored at 1e-8 of the largest) and no decrement."""
+    p = len(g)
+    top = max(abs(H[i][i]) for i in range(p))
+    C = [[0.0] * p for _ in range(p)]
+    ok = top > 0.0
+    for j in range(p):
+        if not ok:
+            break
+        s = -H[j][j] - sum(C[j][k] * C[j][k] for k in range(j))
+        if not s > 1e-8 * top:
+            ok = False
+            break
+        C[j][j] = math.sqrt(s)
+        for i in range(j + 1, p):
+            C[i][j] = (-H[i][j] - sum(C[i][k] * C[j][k] for k in range(j))) / C[j][j]
+    if ok:
+        z = [0.0] * p
+        for i in range(p):
+            z[i] = (g[i] - sum(C[i][k] * z[k] for k in range(i))) / C[i][i]
+        x = [0.0] * p
+        for i in reversed(range(p)):
+            x[i] = (z[i] - sum(C[k][i] * x[k] for k in range(i + 1, p))) / C[i][i]
+        return x, sum(zi * zi for zi in z)
+    lam, V = np.linalg.eigh(np.array(H))
+    mag = np.maximum(np.abs(lam), 1e-8 * max(float(np.max(np.abs(lam))), 1e-300))
+    proj = V.T @ np.array(g)
+    return (V @ (proj / mag)).tolist(), None
 
 
 def latin_hypercube(bounds: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
