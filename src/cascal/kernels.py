@@ -8,7 +8,7 @@ with ``+`` and ``*``; a number becomes a :class:`Constant`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -116,13 +116,13 @@ class _Scaled(Kernel):
 
     def with_theta(self, theta: np.ndarray) -> _Scaled:
         l, v = np.exp(np.asarray(theta, dtype=float))
-        return _replace(self, length_scale=float(l), variance=float(v))
+        return replace(self, length_scale=float(l), variance=float(v))
 
     def unit(self, length_scale: float) -> _Scaled:
         """This kernel at unit variance and the given length scale (fast constructor)."""
         if type(self) in (SquaredExp, Matern32, Matern52):
             return type(self)(length_scale, 1.0)
-        return _replace(self, length_scale=length_scale, variance=1.0)
+        return replace(self, length_scale=length_scale, variance=1.0)
 
     def correlation(self, d: np.ndarray, grad: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """rho (n, n) at unit variance and d rho / d log length_scale (or None)."""
@@ -138,12 +138,6 @@ class _Scaled(Kernel):
         if not grad:
             return K, None
         return K, np.stack([self.variance * drho, K])
-
-
-def _replace(obj, **changes):
-    from dataclasses import replace
-
-    return replace(obj, **changes)
 
 
 @dataclass(frozen=True, slots=True)
@@ -259,8 +253,8 @@ class _Binary(Kernel):
     _names: tuple[str, ...] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        names = [f"k1_{n}" for n in _flat_names(self.left)]
-        names += [f"k2_{n}" for n in _flat_names(self.right)]
+        names = [f"k1_{n}" for n in self.left.names]
+        names += [f"k2_{n}" for n in self.right.names]
         object.__setattr__(self, "_names", tuple(names))
 
     @property
@@ -274,10 +268,6 @@ class _Binary(Kernel):
     def with_theta(self, theta):
         p = self.left.n_params
         return type(self)(self.left.with_theta(theta[:p]), self.right.with_theta(theta[p:]))
-
-
-def _flat_names(k: Kernel) -> tuple[str, ...]:
-    return k.names
 
 
 @dataclass(frozen=True, slots=True)
