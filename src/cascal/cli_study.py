@@ -83,10 +83,15 @@ def _cmd_study(args: argparse.Namespace) -> int:
         a = pair.split(" vs ")[0]
         print(
             f"{pair:>30}: {a} better in {100 * st['fraction_a_better']:.1f} % of trials, "
-            f"Wilcoxon p = {st['wilcoxon_p']:.2e}"
+            f"Wilcoxon p {_p(st['wilcoxon_p'])}"
         )
     print(f"Bijectivity redraws: {s['redraws']}. Figure: {args.out}/cost_distribution.png")
     return 0
+
+
+def _p(p: float) -> str:
+    """A p-value as text; 0.0 means it underflowed double precision."""
+    return "< 1e-300" if p == 0.0 else f"= {p:.2e}"
 
 
 def add_study_parser(sub) -> None:
