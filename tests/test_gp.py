@@ -477,3 +477,16 @@ def test_objective_hessian_against_textbook_formula(learn, data, dense):
     )
     assert_allclose(g, g_ref, rtol=1e-9, atol=1e-9 * np.max(np.abs(g_ref)))
     assert_allclose(H, H_ref, rtol=1e-9, atol=1e-9 * np.max(np.abs(H_ref)))
+
+
+def test_user_bounds_on_variance_or_noise_are_respected():
+    rng = np.random.default_rng(5)
+    x = np.linspace(0.0, 1.0, 30)
+    y = x + 0.01 * np.sin(8 * x) + 1e-3 * rng.standard_normal(30)
+    free = fit_gp(x, y)
+    assert free.hyperparameters["noise_variance"] < 1e-5
+    lo = 1e-4  # far above the free optimum: the fit must sit at this lower bound
+    held = fit_gp(x, y, bounds={"noise_variance": (lo, 1e-2)})
+    assert held.hyperparameters["noise_variance"] == pytest.approx(lo, rel=1e-9)
+    capped = fit_gp(x, y, bounds={"variance": (1e-8, 1e-6)})
+    assert capped.hyperparameters["variance"] <= 1e-6 * (1 + 1e-9)

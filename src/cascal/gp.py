@@ -277,7 +277,9 @@ def _fit_gp(
         kern, sn2 = _from_dict(kern, hyperparameters, learn_noise)
     else:
         rng = np.random.default_rng(seed)
-        profile = isinstance(kern, _Scaled) and known is None and learn_noise
+        # The kernel variance is profiled out unless the user bounds it or the noise.
+        bounded = {"variance", "noise_variance"} & set(bounds or {})
+        profile = isinstance(kern, _Scaled) and known is None and learn_noise and not bounded
         obj = Objective(xa, r, kern, known, learn_noise, profile=profile)
         b = obj.bounds(bounds)
         optimization = maximize(
