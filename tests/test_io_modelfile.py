@@ -194,15 +194,10 @@ def test_shipped_schema_agrees_with_jsonschema(saved):
 
 
 def test_atomic_write_gives_the_usual_permissions(tmp_path):
-    import os
+    from cascal.io import atomic
 
-    from cascal.io.atomic import write_text
-
-    mask = os.umask(0o022)
-    try:
-        path = write_text(tmp_path / "a.txt", "x")
-    finally:
-        os.umask(mask)
+    path = atomic.write_text(tmp_path / "a.txt", "x")
     assert path.read_text() == "x"
-    assert (path.stat().st_mode & 0o777) == 0o644
+    # what open() would give a new file under the process umask, not mkstemp's 0600
+    assert (path.stat().st_mode & 0o777) == 0o666 & ~atomic._UMASK
     assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]  # no temporary left behind

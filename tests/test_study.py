@@ -154,3 +154,26 @@ def test_progress_draws_a_bar_with_rate_on_a_terminal():
     p.close()
     out = stream.getvalue()
     assert "10/10" in out and "trial/s" in out
+
+
+def test_a_study_grows_without_rerunning_stored_trials(tmp_path):
+    small = run_study(tmp_path, trials=3, config=CONFIG, workers=1)
+    grown = run_study(tmp_path, trials=5, config=CONFIG, workers=1)
+    assert grown.ran == 2
+    assert _costs(grown)[:3] == _costs(small)
+    assert _costs(grown) == _costs(
+        run_study(tmp_path / "direct", trials=5, config=CONFIG, workers=1)
+    )
+    head = run_study(tmp_path, trials=2, config=CONFIG, workers=1)
+    assert head.ran == 0 and _costs(head) == _costs(small)[:2]
+
+
+def test_bad_counts_and_scheduler_are_input_errors(tmp_path):
+    with pytest.raises(InputError, match="at least 1 trial"):
+        run_study(tmp_path / "a", trials=0, config=CONFIG, workers=1)
+    with pytest.raises(InputError, match="at least 1 trial and 1 worker"):
+        run_study(tmp_path / "b", trials=2, config=CONFIG, workers=0)
+    pytest.importorskip("distributed")
+    with pytest.raises(InputError, match="cannot reach a Dask scheduler"):
+        run_study(tmp_path / "c", trials=2, config=CONFIG, scheduler="notanaddress")
+    assert not (tmp_path / "c").exists()  # nothing written before the cluster answered

@@ -124,6 +124,8 @@ class Cascade:
             raise InputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
         if len(stages) < 1:
             raise InputError("stages: expected at least one (x, y) pair")
+        if int(n_restarts) < 1:
+            raise InputError(f"n_restarts: expected at least 1 optimiser start, got {n_restarts}")
         n = len(stages)
         self.stages = tuple(_as_stage(s, k, n) for k, s in enumerate(stages))
         self.method = method

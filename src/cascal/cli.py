@@ -294,7 +294,20 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
         help="column of the more accurate sensor (once, or once per file)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the optimiser's starts (default 0)")
-    p.add_argument("--restarts", type=int, default=5, help="optimiser starts per stage (default 5)")
+    p.add_argument(
+        "--restarts", type=positive_int, default=5, help="optimiser starts per stage (default 5)"
+    )
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer of at least 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
+    return value
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -358,7 +371,9 @@ def _parser() -> argparse.ArgumentParser:
         metavar="OUTDIR",
         help="folder for testbed.json, devices/*.json and fleet_summary.csv",
     )
-    fd.add_argument("--jobs", type=int, default=None, help="worker processes (default: CPU count)")
+    fd.add_argument(
+        "--jobs", type=positive_int, default=None, help="worker processes (default: CPU count)"
+    )
     _fit_options(fd)
     fd.set_defaults(func=_cmd_fit_devices)
 

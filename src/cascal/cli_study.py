@@ -96,12 +96,14 @@ def _p(p: float) -> str:
 
 def add_study_parser(sub) -> None:
     """Register ``cascal study`` on the subparsers ``sub``."""
+    from .cli import positive_int
+
     p = sub.add_parser("study", help="run the paper's Monte Carlo study (resumable)")
-    p.add_argument("--trials", type=int, default=12000, help="number of trials (12000)")
+    p.add_argument("--trials", type=positive_int, default=12000, help="number of trials (12000)")
     p.add_argument("--seed", type=int, default=0, help="root seed (0)")
-    p.add_argument("--restarts", type=int, default=3, help="optimiser starts per GP fit (3)")
+    p.add_argument("--restarts", type=positive_int, default=3, help="optimiser starts (3)")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=int, default=None, help="local processes (CPU count)")
+    where.add_argument("--workers", type=positive_int, default=None, help="processes (CPU count)")
     where.add_argument(
         "--scheduler", default=None, help="Dask scheduler address, e.g. tcp://h:8786"
     )

@@ -136,7 +136,7 @@ class FittedGP:
             ``return_cov`` the covariance (m, m) instead. Same unit as the targets.
         """
         if return_std and return_cov:
-            raise ValueError("ask for return_std or return_cov, not both")
+            raise InputError("predict: ask for return_std or return_cov, not both")
         xs = as_positions(x, "x")
         if return_cov:
             Ks = self.kernel(xs, self.x)
@@ -264,6 +264,10 @@ def _fit_gp(
 ) -> FittedGP:
     xa, ya = check_pair(x, y, names)
     n = xa.size
+    if int(n_restarts) < 1:
+        raise InputError(f"n_restarts: expected at least 1 optimiser start, got {n_restarts}")
+    if period is not None and not (isinstance(kernel, str) and kernel.lower() == "periodic"):
+        raise InputError(f"period: only the periodic kernel has one, got kernel {kernel!r}")
     kern = make_kernel(kernel, period=period)
     m = make_mean(mean, ya)
     known = as_noise(noise, n)
@@ -272,6 +276,11 @@ def _fit_gp(
     if known is None and not learn_noise:
         raise InputError("noise: with learn_noise=False a known noise must be given")
     r = ya - m(xa)
+    if hyperparameters is None and not np.any(r) and known is None:
+        raise InputError(
+            f"{names[1]}: every target equals the prior mean ({m.name}) exactly, so the data "
+            "show no correction to learn; give hyperparameters or check the columns"
+        )
     optimization = None
     if hyperparameters is not None:
         kern, sn2 = _from_dict(kern, hyperparameters, learn_noise)

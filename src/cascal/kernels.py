@@ -12,6 +12,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .errors import InputError
+
 __all__ = [
     "KERNEL_NAMES",
     "Constant",
@@ -108,7 +110,7 @@ class _Scaled(Kernel):
         for name in ("length_scale", "variance"):
             v = getattr(self, name)
             if not np.isfinite(v) or v <= 0:
-                raise ValueError(f"{name} must be positive and finite, got {v!r}")
+                raise InputError(f"{name} must be positive and finite, got {v!r}")
 
     @property
     def theta(self) -> np.ndarray:
@@ -209,7 +211,7 @@ class Periodic(_Scaled):
     def __post_init__(self) -> None:
         _Scaled.__post_init__(self)
         if not np.isfinite(self.period) or self.period <= 0:
-            raise ValueError(f"period must be positive and finite, got {self.period!r}")
+            raise InputError(f"period must be positive and finite, got {self.period!r}")
 
     def correlation(self, d, grad):
         s = 2.0 * (np.sin(np.pi * d / self.period) / self.length_scale) ** 2
@@ -232,7 +234,7 @@ class Constant(Kernel):
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.value) or self.value <= 0:
-            raise ValueError(f"value must be positive and finite, got {self.value!r}")
+            raise InputError(f"value must be positive and finite, got {self.value!r}")
 
     @property
     def theta(self) -> np.ndarray:
@@ -317,6 +319,6 @@ def make_kernel(
         return Matern52(length_scale, variance)
     if key == "periodic":
         if period is None:
-            raise ValueError("the periodic kernel needs a period (e.g. 360 for degrees)")
+            raise InputError("the periodic kernel needs a period (e.g. 360 for degrees)")
         return Periodic(length_scale, variance, period=float(period))
-    raise ValueError(f"unknown kernel {name!r}; expected one of {', '.join(KERNEL_NAMES)}")
+    raise InputError(f"unknown kernel {name!r}; expected one of {', '.join(KERNEL_NAMES)}")

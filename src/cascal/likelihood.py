@@ -111,6 +111,8 @@ class Objective:
         L = self._factor(A)
         alpha = linalg.cho_solve(L, r)
         q = float(r @ alpha)
+        if not q > 0.0:  # targets equal to the prior mean: no scale to profile
+            return -np.inf, np.zeros(2)
         lml = -0.5 * n * (np.log(q / n) + 1.0 + _LOG2PI) - 0.5 * linalg.logdet(L)
         if not grad:
             return lml, np.empty(0)
@@ -197,6 +199,8 @@ class Objective:
         L = self._factor(A)
         al = linalg.cho_solve(L, r)
         q = float(r @ al)
+        if not q > 0.0:
+            return -math.inf, np.zeros(2), np.zeros((2, 2))
         lml = -0.5 * n * (math.log(q / n) + 1.0 + _LOG2PI) - 0.5 * linalg.logdet(L)
         Ainv = linalg.inverse_from_cholesky(L)
         M1 = Ainv @ r1
@@ -264,7 +268,8 @@ class Objective:
             out = [rows[name] for name in self.kernel.names]
             if self.learn_noise:
                 out.append(rows["noise_variance"])
-        b = np.log(np.asarray(out, dtype=float))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            b = np.log(np.asarray(out, dtype=float))
         if not np.all(np.isfinite(b)) or np.any(b[:, 0] > b[:, 1]):
             raise InputError(f"bounds: expected 0 < lower <= upper, got {out}")
         return b

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import InputError
+
 __all__ = ["Mean", "make_mean"]
 
 
@@ -45,6 +47,6 @@ def make_mean(spec: str | float | Mean, y: np.ndarray | None = None) -> Mean:
         return Mean(0.0, 0.0)
     if key == "constant":
         if y is None:
-            raise ValueError("mean='constant' needs the targets to take their average")
+            raise InputError("mean='constant' needs the targets to take their average")
         return Mean(0.0, float(np.mean(y)))
-    raise ValueError(f"unknown mean {spec!r}; expected 'identity', 'zero', 'constant' or a number")
+    raise InputError(f"unknown mean {spec!r}; expected 'identity', 'zero', 'constant' or a number")

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import InputError
 from .io.atomic import save_figure, write_text
 from .io.studydb import StudyDB
 from .montecarlo import StudyConfig, TrialResult, run_chunk, summarize
@@ -61,8 +62,9 @@ def run_study(
     Args:
         out: Output folder: ``study.sqlite``, ``trials.csv``, ``summary.json``,
             ``cost_distribution.png`` and ``.svg``.
-        trials: Number of trials.
-        config: Seed and fit settings (part of the folder's identity).
+        trials: Number of trials: trials 0 .. trials-1. A folder can be extended with a
+            larger number; a smaller one summarises the first ``trials`` stored.
+        config: Seed and fit settings (the folder's identity: other settings are refused).
         workers: Local worker processes (default: CPU count; 1 runs in this process).
         scheduler: Address of a Dask scheduler to run on instead (needs ``distributed``).
         executor: Any executor to run on instead (takes precedence).
@@ -70,8 +72,18 @@ def run_study(
         progress: Called as ``progress(done, total)`` after every finished task.
     """
     config = config or StudyConfig()
+    if int(trials) < 1 or (workers is not None and int(workers) < 1):
+        raise InputError(f"expected at least 1 trial and 1 worker, got {trials} and {workers}")
+    client = _connect(scheduler) if scheduler is not None and executor is None else None
+    if client is not None:
+        executor = client.get_executor()
     folder = Path(out)
-    db = StudyDB(folder, {**config.as_dict(), "trials": int(trials)})
+    try:
+        db = StudyDB(folder, config.as_dict())
+    except BaseException:
+        if client is not None:
+            client.close()
+        raise
     try:
         pending = sorted(set(range(trials)) - db.done())
         n_workers = workers or multiprocessing.cpu_count()
@@ -80,14 +92,16 @@ def run_study(
         done = trials - len(pending)
         if progress:
             progress(done, trials)
-        for results in _execute(config, chunks, executor, scheduler, n_workers):
+        for results in _execute(config, chunks, executor, n_workers):
             db.add(results)
             done += len(results)
             if progress:
                 progress(done, trials)
-        results = db.results()
+        results = [r for r in db.results() if r.index < trials]
     finally:
         db.close()
+        if client is not None:
+            client.close()  # disconnect only: the cluster belongs to the user
     summary = summarize({m: np.array([r.cost[m] for r in results]) for m in config.methods})
     summary["redraws"] = int(sum(r.redraws for r in results))
     summary["seconds_per_trial"] = _mean_seconds(results)
@@ -102,24 +116,18 @@ def run_study(
     return StudyOutcome(folder, results, summary, len(pending))
 
 
-def _execute(config, chunks, executor, scheduler, n_workers):
+def _execute(config, chunks, executor, n_workers):
     """Yield each chunk's results as it completes, on the chosen executor."""
     if not chunks:
         return
-    if executor is None and scheduler is None and n_workers == 1:
+    if executor is None and n_workers == 1:
         for c in chunks:
             yield run_chunk(config, c)
         return
-    pool = client = None
+    pool = None
     if executor is None:
-        if scheduler is not None:
-            from distributed import Client
-
-            client = Client(scheduler)
-            executor = client.get_executor()
-        else:
-            ctx = multiprocessing.get_context("spawn")
-            executor = pool = ProcessPoolExecutor(n_workers, mp_context=ctx)
+        ctx = multiprocessing.get_context("spawn")
+        executor = pool = ProcessPoolExecutor(n_workers, mp_context=ctx)
     futures: list[Future] = []
     try:
         futures = [executor.submit(run_chunk, config, c) for c in chunks]
@@ -130,8 +138,16 @@ def _execute(config, chunks, executor, scheduler, n_workers):
             f.cancel()
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
-        if client is not None:
-            client.close()  # disconnect only: the cluster belongs to the user
+
+
+def _connect(address: str):
+    """A Dask client of the scheduler at ``address``; a bad address is an InputError."""
+    from distributed import Client
+
+    try:
+        return Client(address, timeout="10s")
+    except (OSError, ValueError, TimeoutError) as exc:
+        raise InputError(f"--scheduler {address}: cannot reach a Dask scheduler ({exc})") from None
 
 
 def _mean_seconds(results: list[TrialResult]) -> dict[str, float]:

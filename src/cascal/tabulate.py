@@ -128,7 +128,9 @@ def predict_many(
 
     Readings inside the span of the data (any reading, for a periodic GP) come from a
     :func:`tabulate` table when there are at least ``MIN_READINGS_FOR_TABLE`` of them;
-    all others, and all readings when the table does not reach ``rtol``, are exact.
+    all others, and all readings when the table does not reach ``rtol``, are exact. The
+    table always spans the data, so a reading's value does not depend on the other
+    readings of the batch; table and exact values agree to ``rtol`` times the smallest u.
     """
     xs = as_positions(x, "x")
     mean = np.empty(xs.shape)
@@ -138,8 +140,7 @@ def predict_many(
     inside = np.ones(xs.shape, bool) if periodic else (xs >= lo) & (xs <= hi)
     table = None
     if np.count_nonzero(inside) >= MIN_READINGS_FOR_TABLE:
-        a, b = (lo, hi) if periodic else (float(xs[inside].min()), float(xs[inside].max()))
-        table = tabulate(gp, a, b, rtol=rtol) if b > a else None
+        table = tabulate(gp, lo, hi, rtol=rtol) if hi > lo else None
     if table is None:
         inside[:] = False
     else:

@@ -10,6 +10,15 @@ from pathlib import Path
 __all__ = ["atomic_write", "save_figure", "write_text"]
 
 
+def _read_umask() -> int:
+    mask = os.umask(0)  # the only portable way to read it: read once, at import
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     """Call ``write(tmp_path)`` and rename the result onto ``path``; nothing half-written.
 
@@ -23,7 +32,9 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     os.close(fd)
     try:
         write(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the usual permissions
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())  # the content is on disk before the name points at it
         os.replace(tmp, dest)
     except BaseException:
         if os.path.exists(tmp):
@@ -46,9 +57,3 @@ def save_figure(fig, path: str | os.PathLike, **kwargs) -> Path:
     """Save a matplotlib figure atomically; the format follows the file suffix."""
     fmt = Path(path).suffix.lstrip(".") or "png"
     return atomic_write(path, lambda tmp: fig.savefig(tmp, format=fmt, **kwargs))
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask

@@ -26,7 +26,8 @@ class StudyDB:
 
     Args:
         folder: Output folder (created if missing).
-        config: The study's configuration as a JSON-able dict (includes the trial count).
+        config: The study's configuration as a JSON-able dict. Every trial depends on it and
+            on its index alone, so the trial count is not part of it: a study can grow.
 
     Raises:
         InputError: The folder holds a study with another configuration.
@@ -53,7 +54,7 @@ class StudyDB:
                 self.con.execute("INSERT INTO meta VALUES ('config', ?)", (wanted,))
                 self.con.execute("INSERT INTO meta VALUES ('schema', ?)", (str(_SCHEMA),))
                 self.con.execute("INSERT INTO meta VALUES ('cascal', ?)", (__version__,))
-        if row is not None and row[0] != wanted:
+        if row is not None and _identity(row[0]) != _identity(wanted):
             self.con.close()
             raise InputError(
                 f"{self.path} holds a study with configuration {row[0]}, not {wanted}; "
@@ -98,3 +99,10 @@ class StudyDB:
 
     def close(self) -> None:
         self.con.close()
+
+
+def _identity(config_json: str) -> dict:
+    """The part of a stored configuration that fixes every trial's numbers."""
+    config = json.loads(config_json)
+    config.pop("trials", None)  # stamped by cascal 0.1.0 development versions
+    return config
