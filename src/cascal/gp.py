@@ -26,6 +26,8 @@ from .validation import as_positions, check_pair
 __all__ = ["FittedGP", "Objective", "Posterior", "fit_gp", "log_marginal_likelihood"]
 
 _LOG2PI = np.log(2.0 * np.pi)
+#: Two-sided 95 % quantile of the normal distribution, for bands and error bars.
+Z95 = 1.959963984540054
 #: Cross-covariance entries per block of a prediction: small blocks stay in cache and avoid
 #: the page faults of large fresh allocations (10x faster for 2000 x 100).
 _BLOCK = 32768

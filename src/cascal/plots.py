@@ -11,11 +11,9 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from .cascade import FittedCascade
-from .gp import FittedGP
+from .gp import Z95, FittedGP
 
 __all__ = ["plot_cascade", "plot_cost_distribution", "plot_stage"]
-
-_Z95 = 1.959963984540054
 
 
 def plot_stage(
@@ -55,8 +53,8 @@ def plot_stage(
     mean, std = gp.predict(grid, return_std=True)
     ax.fill_between(
         grid,
-        (mean - _Z95 * std - base) * scale,
-        (mean + _Z95 * std - base) * scale,
+        (mean - Z95 * std - base) * scale,
+        (mean + Z95 * std - base) * scale,
         color=color,
         alpha=0.2,
         lw=0,
@@ -113,7 +111,7 @@ def plot_cascade(
     for k, (gp, ax) in enumerate(zip(models, axes, strict=True)):
         bars = None
         if k > 0 and gp.noise is not None:
-            bars = _Z95 * np.sqrt(np.clip(gp.noise.diagonal(gp.x.size), 0.0, None))
+            bars = Z95 * np.sqrt(np.clip(gp.noise.diagonal(gp.x.size), 0.0, None))
         truth = truths[k] if truths is not None else None
         plot_stage(
             gp,

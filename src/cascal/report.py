@@ -16,6 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ._version import __version__
+from .gp import Z95
 from .io.modelfile import CalibrationModel
 from .reportdata import CurveView, StageView, correction_curve, stage_views
 
@@ -50,7 +51,7 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
     ax.plot(view.grid, (view.mean - view.grid) * f, color="C0", lw=1.5, label="fit")
     if view.target_sd is not None:
         ax.errorbar(
-            view.x, corr * f, yerr=1.96 * view.target_sd * f, fmt=".", color="k", ms=3,
+            view.x, corr * f, yerr=Z95 * view.target_sd * f, fmt=".", color="k", ms=3,
             elinewidth=0.6, label="targets (95 % known noise)",
         )  # fmt: skip
     else:

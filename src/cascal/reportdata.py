@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .gp import FittedGP
+from .gp import Z95, FittedGP
 from .io.modelfile import CalibrationModel
 from .workflow import correct
 
@@ -29,7 +29,6 @@ __all__ = [
 
 #: A spacing this many times the median spacing of stage 0's readings counts as a gap.
 GAP_FACTOR = 3.0
-_Z95 = 1.959963984540054
 _GRID = 600
 
 
@@ -158,9 +157,9 @@ def stage_views(model: CalibrationModel) -> list[StageView]:
             extra = dict(
                 target_sd=None if m.noise is None else np.sqrt(np.clip(known, 0.0, None)),
                 mean=mean,
-                band=_Z95 * std,
+                band=Z95 * std,
                 residuals=used.y - fit_x,
-                residual_band=_Z95 * np.sqrt(np.clip(known + m.noise_variance, 0.0, None)),
+                residual_band=Z95 * np.sqrt(np.clip(known + m.noise_variance, 0.0, None)),
                 hyperparameters=m.hyperparameters,
                 log_marginal_likelihood=m.log_marginal_likelihood,
             )
