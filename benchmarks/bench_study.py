@@ -1,9 +1,10 @@
 """The paper's Monte Carlo study, timed: wall time, trials per second, split per method.
 
-Then a quality check on a sample of trials: every stage fit of the study's optimiser
-(screened seeded starts, ``StudyConfig.n_restarts``) must reach a log marginal likelihood
-at least as good (to 1e-3) as a plain five-start L-BFGS-B reference from uniformly random
-starts in the same bounds.
+Then a quality check on further trials: each stage fit of the study's optimiser (screened
+seeded starts, ``StudyConfig.n_restarts``) against a plain five-start L-BFGS-B from uniformly
+random starts in the same bounds. Both are multi-start searches of non-convex likelihoods, so
+either can miss the best optimum of a fit; the check counts, in both directions, the fits in
+which one ends more than 1e-3 below the other, and prints the largest such gap.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import time
 import numpy as np
 
 from cascal.cascade import Cascade
-from cascal.gp import Objective
+from cascal.gp import Objective, single_threaded_blas
 from cascal.kernels import SquaredExp
 from cascal.montecarlo import StudyConfig, trial_rng
 from cascal.optimize import maximize
@@ -32,9 +33,9 @@ def reference_lml(x, y, noise, rng) -> float:
     return res.value
 
 
-def quality(config: StudyConfig, sample: int) -> tuple[int, float]:
-    """(fits checked, largest shortfall of the study's LML below the reference)."""
-    worst, checked = -np.inf, 0
+def quality(config: StudyConfig, sample: int) -> np.ndarray:
+    """Per stage fit of ``sample`` further trials: reference LML minus ours, shape (3 sample,)."""
+    gaps = []
     for i in range(sample):
         rng = trial_rng(config.seed, 10_000_000 + i)
         trial = simulate_trial(rng)
@@ -42,27 +43,17 @@ def quality(config: StudyConfig, sample: int) -> tuple[int, float]:
         homo = Cascade(
             [trial.d2, trial.d1], "homoscedastic", n_restarts=config.n_restarts, seed=i
         ).fit(first=fitted.models[0])
-        a, b_bayes, b_homo = fitted.models[0], fitted.models[1], homo.models[1]
         ref_rng = np.random.default_rng(i)
-        pairs = [
-            (a.log_marginal_likelihood, reference_lml(a.x, a.y, None, ref_rng)),
-            (
-                b_bayes.log_marginal_likelihood,
-                reference_lml(b_bayes.x, b_bayes.y, b_bayes.noise, ref_rng),
-            ),
-            (b_homo.log_marginal_likelihood, reference_lml(b_homo.x, b_homo.y, None, ref_rng)),
-        ]
-        for ours, ref in pairs:
-            worst = max(worst, ref - ours)
-            checked += 1
-    return checked, worst
+        for gp in (fitted.models[0], fitted.models[1], homo.models[1]):
+            gaps.append(reference_lml(gp.x, gp.y, gp.noise, ref_rng) - gp.log_marginal_likelihood)
+    return np.asarray(gaps)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--trials", type=int, default=12000)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--sample", type=int, default=30, help="trials in the quality check")
+    ap.add_argument("--sample", type=int, default=200, help="trials in the quality check")
     args = ap.parse_args()
     config = StudyConfig()
     with tempfile.TemporaryDirectory() as tmp:
@@ -83,11 +74,14 @@ def main() -> None:
     print(
         "median J [µm]:", ", ".join(f"{m} {v['median'] * 1e6:.2f}" for m, v in s["methods"].items())
     )
-    checked, worst = quality(config, args.sample)
-    verdict = "OK" if worst <= 1e-3 else "WORSE"
+    with single_threaded_blas():  # small matrices: BLAS threads only add overhead
+        gaps = quality(config, args.sample)
+    lower, higher = gaps[gaps > 1e-3], -gaps[gaps < -1e-3]
     print(
-        f"quality: {checked} stage fits on {args.sample} trials vs five-start L-BFGS-B: "
-        f"largest LML shortfall {worst:.2e} ({verdict}; negative means ours is better)"
+        f"quality: {gaps.size} stage fits on {args.sample} further trials against five-start "
+        f"L-BFGS-B from random starts: ours lower by > 1e-3 in {lower.size} "
+        f"(largest {lower.max(initial=0.0):.3g}), the reference lower in {higher.size} "
+        f"(largest {higher.max(initial=0.0):.3g}); every other fit within 1e-3"
     )
 
 

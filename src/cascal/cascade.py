@@ -101,7 +101,7 @@ class Cascade:
         method: ``bayes`` (Algorithm 1), ``homoscedastic`` (Alternative 1) or ``lut``.
         kernel: Kernel name or Kernel, for every GP stage.
         mean: Prior mean of every GP stage (default identity).
-        n_restarts: L-BFGS-B starts per stage.
+        n_restarts: Local optimiser starts per stage (after screening seeded candidates).
         seed: Seed of the whole fit; each stage gets its own child stream.
         period: Period of a ``periodic`` kernel.
         check_range: Refuse a stage whose upper-sensor readings leave the range of the

@@ -238,7 +238,7 @@ def fit_gp(
             unless ``noise`` is a number or a vector.
         hyperparameters: Given values by name (``length_scale``, ``variance``,
             ``noise_variance``, ...); nothing is optimised.
-        n_restarts: Number of L-BFGS-B starts (after screening seeded candidates).
+        n_restarts: Number of local optimiser starts (after screening seeded candidates).
         seed: Seed or Generator for the starts.
         period: Period of the ``"periodic"`` kernel, in the unit of ``x``.
         bounds: Optimisation bounds by hyperparameter name, natural units.

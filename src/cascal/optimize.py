@@ -30,7 +30,7 @@ _KNOWN = 0.01
 
 @dataclass(frozen=True, slots=True)
 class Start:
-    """One L-BFGS-B run: where it began and ended, in log space."""
+    """One local optimiser run (Newton or L-BFGS-B): where it began and ended, in log space."""
 
     theta0: np.ndarray
     theta: np.ndarray
@@ -50,7 +50,7 @@ class OptimResult:
 
     @property
     def n_evals(self) -> int:
-        """Objective evaluations: candidates plus every L-BFGS-B evaluation."""
+        """Objective evaluations: candidates plus every local optimiser evaluation."""
         return self.n_candidates + sum(s.n_evals for s in self.starts)
 
 
