@@ -52,6 +52,57 @@ def test_newton_escapes_a_saddle_region():
     np.testing.assert_allclose(np.abs(s.theta), [1.0, 0.0], atol=2e-5)
 
 
+def test_deferred_derivatives_give_the_same_run_and_are_skipped_on_rejected_steps():
+    # A concave function whose quadratic model overshoots far from the top: some trust-region
+    # steps are rejected, and only accepted points may pay for gradient and Hessian.
+    def vgh(t):
+        u = t - np.array([0.4, -0.2])
+        w = 1.0 + u @ u
+        f = -np.log(w) - 0.1 * float(u @ u)
+        g = -2.0 * u / w - 0.2 * u
+        H = -2.0 * np.eye(2) / w + 4.0 * np.outer(u, u) / w**2 - 0.2 * np.eye(2)
+        return f, g, H
+
+    calls = {"value": 0, "derivatives": 0}
+
+    def staged(t):
+        calls["value"] += 1
+        f, g, H = vgh(t)
+
+        def derivatives():
+            calls["derivatives"] += 1
+            return g, H
+
+        return f, derivatives
+
+    bounds = np.array([[-20.0, 20.0], [-20.0, 20.0]])
+    eager = newton_maximize(vgh, np.array([15.0, -12.0]), bounds)
+    lazy = newton_maximize(staged, np.array([15.0, -12.0]), bounds)
+    np.testing.assert_array_equal(lazy.theta, eager.theta)
+    assert lazy.value == eager.value and lazy.n_evals == eager.n_evals == calls["value"]
+    np.testing.assert_allclose(lazy.theta, [0.4, -0.2], atol=1e-6)
+    assert calls["derivatives"] < calls["value"]  # at least one step was rejected
+
+
+def test_objective_value_and_derivatives_match_value_grad_hess():
+    rng = np.random.default_rng(3)
+    x = np.sort(rng.uniform(0, 1, 30))
+    r = 0.01 * np.sin(6 * x) + 1e-4 * rng.standard_normal(30)
+    for obj, theta in (
+        (Objective(x, r, SquaredExp(), None, True, profile=True), np.array([-1.5, -6.0])),
+        (
+            Objective(x, r, SquaredExp(), Dense(1e-8 * np.eye(30)), True),
+            np.array([-1.5, -9.0, -15.0]),
+        ),
+    ):
+        f, derivatives = obj.value_and_derivatives(theta)
+        g, H = derivatives()
+        f2, g2, H2 = obj.value_grad_hess(theta)
+        assert f == f2 == obj.value(theta)
+        np.testing.assert_array_equal(g, g2)
+        np.testing.assert_array_equal(H, H2)
+
+
 def test_latin_hypercube_is_stratified():
     rng = np.random.default_rng(0)
     b = np.array([[0.0, 1.0], [-2.0, 2.0]])

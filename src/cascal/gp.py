@@ -299,7 +299,7 @@ def _fit_gp(
             b,
             n_restarts=n_restarts,
             rng=rng,
-            value_grad_hess=obj.value_grad_hess if obj.has_hessian else None,
+            value_grad_hess=obj.value_and_derivatives if obj.has_hessian else None,
         )
         theta = obj.full_theta(optimization.theta)
         p = kern.n_params

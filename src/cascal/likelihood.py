@@ -9,6 +9,7 @@ kernel variance profiled out in closed form the search has one dimension less.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from scipy.linalg import lapack
@@ -133,6 +134,15 @@ class Objective:
         Uses d^2 lml / d theta_i d theta_j = 1/2 a^T K_ij a - a^T K_i Kt^-1 K_j a
         + 1/2 tr(Kt^-1 K_i Kt^-1 K_j) - 1/2 tr(Kt^-1 K_ij), a = Kt^-1 r (K_i = dKt/dtheta_i).
         """
+        lml, derivatives = self.value_and_derivatives(theta)
+        return (lml, *derivatives())
+
+    def value_and_derivatives(
+        self, theta: np.ndarray
+    ) -> tuple[float, Callable[[], tuple[np.ndarray, np.ndarray]]]:
+        """Log marginal likelihood at ``theta`` and a function giving its gradient and
+        Hessian from the same factorisation (:meth:`value_grad_hess` in two stages): an
+        optimiser that rejects the point pays only for the Cholesky factor."""
         theta = np.asarray(theta, dtype=float)
         if self.profile:
             return self._profiled_hess(theta)
@@ -148,6 +158,10 @@ class Objective:
         L = self._factor(Kt)
         a = linalg.cho_solve(L, r)
         lml = -0.5 * float(r @ a) - 0.5 * linalg.logdet(L) - 0.5 * n * _LOG2PI
+        return lml, lambda: self._hessian(L, a, rho, r1, r2, sf2, sn2)
+
+    def _hessian(self, L, a, rho, r1, r2, sf2: float, sn2: float) -> tuple[np.ndarray, np.ndarray]:
+        n = self.n
         Kinv = linalg.inverse_from_cholesky(L)
         # dKt/dtheta: sf2 r1, sf2 rho, sn2 I; second: K_ll = sf2 r2, K_ls = sf2 r1,
         # K_ss = sf2 rho, K_nn = sn2 I, others 0. Q_i = Kt^-1 rho_i, so M_i = sf2 Q_i.
@@ -186,9 +200,9 @@ class Objective:
         H[1, 1] += g[1]
         if p == 3:
             H[2, 2] += g[2]
-        return lml, g, H
+        return g, H
 
-    def _profiled_hess(self, theta: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    def _profiled_hess(self, theta: np.ndarray) -> tuple[float, Callable]:
         # P = -n/2 log q - 1/2 log|A| + c, q = r^T A^-1 r, A = rho + g I, a_i = alpha^T A_i alpha.
         n, r = self.n, self.r
         k = self.kernel.unit(math.exp(theta[0]))  # type: ignore[attr-defined]
@@ -200,8 +214,12 @@ class Objective:
         al = linalg.cho_solve(L, r)
         q = float(r @ al)
         if not q > 0.0:
-            return -math.inf, np.zeros(2), np.zeros((2, 2))
+            return -math.inf, lambda: (np.zeros(2), np.zeros((2, 2)))
         lml = -0.5 * n * (math.log(q / n) + 1.0 + _LOG2PI) - 0.5 * linalg.logdet(L)
+        return lml, lambda: self._profiled_hessian(L, al, q, r1, r2, gn)
+
+    def _profiled_hessian(self, L, al, q: float, r1, r2, gn: float):
+        n = self.n
         Ainv = linalg.inverse_from_cholesky(L)
         M1 = Ainv @ r1
         v1 = r1 @ al
@@ -225,7 +243,7 @@ class Objective:
                 [h12, c * (da22 + a2 * a2 / q) + 0.5 * tr22],
             ]
         )
-        return lml, g, H
+        return g, H
 
     def full_theta(self, theta: np.ndarray) -> np.ndarray:
         """``[kernel.theta, log noise_variance]`` from a (possibly profiled) ``theta``."""

@@ -72,6 +72,8 @@ def newton_maximize(
     than 1e-10 relative gain, or the steps stop changing the value. A run that comes within
     0.01 (log units) of an optimum in ``known`` stops there: it is converging to that optimum.
     The few parameters live in Python floats: the loop's cost is the objective's.
+    ``value_grad_hess`` returns ``(f, g, H)``, or ``(f, derivatives)`` with ``derivatives()``
+    giving ``(g, H)``: then a rejected step costs only the value.
     """
     lo, hi = bounds[:, 0].tolist(), bounds[:, 1].tolist()
     p = len(lo)
@@ -81,7 +83,8 @@ def newton_maximize(
     ]
     start = np.asarray(theta0)
     try:
-        f, g, H = _call(value_grad_hess, theta)
+        f, rest = _stage(value_grad_hess, theta)
+        g, H = rest()
     except NumericalError:
         return Start(start, np.array(theta), -np.inf, 1, False)
     evals, radius, converged = 1, _RADIUS0, False
@@ -116,12 +119,17 @@ def newton_maximize(
         Hd = [sum(hij * dj for hij, dj in zip(row, d, strict=True)) for row in H]
         pred = sum(gi * di + 0.5 * di * hdi for gi, di, hdi in zip(g, d, Hd, strict=True))
         try:
-            ft, gt, Ht = _call(value_grad_hess, trial)
+            ft, rest = _stage(value_grad_hess, trial)
         except NumericalError:  # not factorisable there: treat as a failed step
-            ft, gt, Ht = -math.inf, g, H
+            ft = -math.inf
         evals += 1
         gain = ft - f if math.isfinite(ft) else -math.inf
         dn = math.sqrt(sum(x * x for x in d))
+        if gain > 0 or (gain == 0 and dn == 0):
+            try:
+                gt, Ht = rest()  # derivatives only where the step is taken
+            except NumericalError:
+                gain = -math.inf
         if gain > 0 or (gain == 0 and dn == 0):
             if gain > 0.75 * pred and dn > 0.9 * radius:
                 radius = min(4.0 * radius, 20.0)
@@ -138,9 +146,21 @@ def newton_maximize(
     return Start(start, np.array(theta), float(f), evals, converged)
 
 
-def _call(vgh: Callable, theta: list[float]) -> tuple[float, list[float], list[list[float]]]:
-    f, g, H = vgh(np.array(theta))
-    return float(f), np.asarray(g, dtype=float).tolist(), np.asarray(H, dtype=float).tolist()
+def _stage(vgh: Callable, theta: list[float]) -> tuple[float, Callable[[], tuple[list, list]]]:
+    """The value at ``theta`` and a function giving (gradient, Hessian) as Python lists;
+    ``vgh`` returns ``(f, g, H)``, or ``(f, derivatives)`` to defer the derivatives."""
+    out = vgh(np.array(theta))
+    if len(out) == 3:
+        f, g, H = out
+        derivatives = lambda: (g, H)  # noqa: E731
+    else:
+        f, derivatives = out
+
+    def rest() -> tuple[list, list]:
+        g, H = derivatives()
+        return np.asarray(g, dtype=float).tolist(), np.asarray(H, dtype=float).tolist()
+
+    return float(f), rest
 
 
 def _ascent_step(H: list[list[float]], g: list[float]) -> tuple[list[float], float | None]:
@@ -203,7 +223,8 @@ def maximize(
         rng: Source of the candidate points.
         initial: Optional extra start, shape (p,), tried first.
         n_candidates: Screened candidates; default ``6 * n_restarts`` (at least 16).
-        value_grad_hess: Objective, gradient and Hessian (p, p): enables Newton steps.
+        value_grad_hess: Objective, gradient and Hessian (p, p), or the objective and a
+            function giving the other two (see :func:`newton_maximize`): enables Newton.
 
     Returns:
         The best optimum and one :class:`Start` per run.
