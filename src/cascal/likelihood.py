@@ -145,7 +145,7 @@ class Objective:
         optimiser that rejects the point pays only for the Cholesky factor."""
         theta = np.asarray(theta, dtype=float)
         if self.profile:
-            return self._profiled_hess(theta)
+            return self._profiled_staged(theta)
         n, r = self.n, self.r
         k = self.kernel.unit(math.exp(theta[0]))  # type: ignore[attr-defined]
         rho, r1, r2 = k.correlation2(self.d)
@@ -158,9 +158,9 @@ class Objective:
         L = self._factor(Kt)
         a = linalg.cho_solve(L, r)
         lml = -0.5 * float(r @ a) - 0.5 * linalg.logdet(L) - 0.5 * n * _LOG2PI
-        return lml, lambda: self._hessian(L, a, rho, r1, r2, sf2, sn2)
+        return lml, lambda: self._derivatives(L, a, rho, r1, r2, sf2, sn2)
 
-    def _hessian(self, L, a, rho, r1, r2, sf2: float, sn2: float) -> tuple[np.ndarray, np.ndarray]:
+    def _derivatives(self, L, a, rho, r1, r2, sf2: float, sn2: float) -> tuple[np.ndarray, ...]:
         n = self.n
         Kinv = linalg.inverse_from_cholesky(L)
         # dKt/dtheta: sf2 r1, sf2 rho, sn2 I; second: K_ll = sf2 r2, K_ls = sf2 r1,
@@ -202,7 +202,7 @@ class Objective:
             H[2, 2] += g[2]
         return g, H
 
-    def _profiled_hess(self, theta: np.ndarray) -> tuple[float, Callable]:
+    def _profiled_staged(self, theta: np.ndarray) -> tuple[float, Callable]:
         # P = -n/2 log q - 1/2 log|A| + c, q = r^T A^-1 r, A = rho + g I, a_i = alpha^T A_i alpha.
         n, r = self.n, self.r
         k = self.kernel.unit(math.exp(theta[0]))  # type: ignore[attr-defined]
@@ -216,9 +216,9 @@ class Objective:
         if not q > 0.0:
             return -math.inf, lambda: (np.zeros(2), np.zeros((2, 2)))
         lml = -0.5 * n * (math.log(q / n) + 1.0 + _LOG2PI) - 0.5 * linalg.logdet(L)
-        return lml, lambda: self._profiled_hessian(L, al, q, r1, r2, gn)
+        return lml, lambda: self._profiled_derivatives(L, al, q, r1, r2, gn)
 
-    def _profiled_hessian(self, L, al, q: float, r1, r2, gn: float):
+    def _profiled_derivatives(self, L, al, q: float, r1, r2, gn: float):
         n = self.n
         Ainv = linalg.inverse_from_cholesky(L)
         M1 = Ainv @ r1

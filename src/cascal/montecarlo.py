@@ -30,7 +30,7 @@ class StudyConfig:
 
     Attributes:
         seed: Root seed of the study.
-        n_restarts: Newton starts per GP stage fit, from the best of the screened seeded
+        n_restarts: Local optimiser starts per GP stage fit, from the best of the screened seeded
             candidates. With three, a fit ends below the best optimum about as often as a
             five-start L-BFGS-B from random starts does (``make bench`` counts both).
         kernel: Kernel of every GP stage.

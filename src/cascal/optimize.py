@@ -125,12 +125,13 @@ def newton_maximize(
         evals += 1
         gain = ft - f if math.isfinite(ft) else -math.inf
         dn = math.sqrt(sum(x * x for x in d))
-        if gain > 0 or (gain == 0 and dn == 0):
+        take = gain > 0 or (gain == 0 and dn == 0)
+        if take:
             try:
                 gt, Ht = rest()  # derivatives only where the step is taken
             except NumericalError:
-                gain = -math.inf
-        if gain > 0 or (gain == 0 and dn == 0):
+                take = False
+        if take:
             if gain > 0.75 * pred and dn > 0.9 * radius:
                 radius = min(4.0 * radius, 20.0)
             small = gain <= 1e-13 * max(1.0, abs(f))
