@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from . import linalg
+from . import linalg, surrogate
 from .errors import InputError
 from .kernels import Kernel, Periodic, _Scaled, make_kernel
 from .likelihood import Objective
@@ -293,6 +293,11 @@ def _fit_gp(
         profile = isinstance(kern, _Scaled) and known is None and learn_noise and not bounded
         obj = Objective(xa, r, kern, known, learn_noise, profile=profile)
         b = obj.bounds(bounds)
+        starts = None
+        if profile:
+            starts = surrogate.profiled_starts(kern, xa, r, b, n_restarts)
+        elif known is not None and learn_noise and not bounded and obj.dim == 3:
+            starts = surrogate.dense_starts(kern, xa, r, known.factor(n), b, n_restarts)
         optimization = maximize(
             obj.value,
             obj.value_and_grad,
@@ -300,6 +305,7 @@ def _fit_gp(
             n_restarts=n_restarts,
             rng=rng,
             value_grad_hess=obj.value_and_derivatives if obj.has_hessian else None,
+            starts=starts,
         )
         theta = obj.full_theta(optimization.theta)
         p = kern.n_params

@@ -30,6 +30,12 @@ class Noise:
         """Full covariance, shape (n, n), in the target unit squared."""
         raise NotImplementedError
 
+    def factor(self, n: int) -> np.ndarray:
+        """Low-rank ``U`` (n, m) with ``U @ U.T`` the covariance up to eigenvalues below
+        1e-4 of the largest (at most 16 columns): for cheap start-point surrogates."""
+        w, V = np.linalg.eigh(self.dense(n))
+        return _low_rank(w, V)
+
     def add_to(self, K: np.ndarray) -> np.ndarray:
         """``K + covariance`` as a new array, K of shape (n, n)."""
         n = len(K)
@@ -88,6 +94,7 @@ class Dense(Noise):
     atol: float = 0.0
     n_clipped: int = field(default=0, init=False)
     min_eigenvalue: float = field(default=0.0, init=False)
+    _factor: np.ndarray = field(default=None, init=False, repr=False, compare=False)  # type: ignore[assignment]
     is_diagonal = False  # type: ignore[misc]
 
     def __post_init__(self) -> None:
@@ -116,6 +123,7 @@ class Dense(Noise):
             C = (V * np.where(neg, 0.0, w)) @ V.T
             C = 0.5 * (C + C.T)
         object.__setattr__(self, "cov", C)
+        object.__setattr__(self, "_factor", _low_rank(np.where(neg, 0.0, w), V))
         object.__setattr__(self, "n_clipped", int(np.count_nonzero(neg)))
         object.__setattr__(self, "min_eigenvalue", wmin)
 
@@ -126,6 +134,10 @@ class Dense(Noise):
     def diagonal(self, n: int) -> np.ndarray:
         self._check(n)
         return np.diagonal(self.cov).copy()
+
+    def factor(self, n: int) -> np.ndarray:
+        self._check(n)
+        return self._factor
 
     def dense(self, n: int) -> np.ndarray:
         self._check(n)
@@ -153,6 +165,15 @@ class NoiseSum(Noise):
 
     def __add__(self, other: Noise) -> NoiseSum:
         return NoiseSum((*self.parts, other))
+
+
+def _low_rank(w: np.ndarray, V: np.ndarray, rel: float = 1e-4, rank: int = 16) -> np.ndarray:
+    """Columns ``sqrt(w_i) v_i`` of the eigenpairs (ascending ``w``) within ``rel`` of the
+    largest, at most ``rank`` of them; shape (n, m)."""
+    if not w.size or not w[-1] > 0.0:
+        return np.zeros((len(V), 0))
+    m = min(int(np.count_nonzero(w >= rel * w[-1])), rank)
+    return V[:, w.size - m :] * np.sqrt(w[w.size - m :])
 
 
 def as_noise(spec: float | np.ndarray | Noise | None, n: int) -> Noise | None:

@@ -2,9 +2,11 @@
 
 Candidates are drawn by Latin hypercube sampling inside finite log bounds and ranked by the
 cheap objective (no gradient); a local optimiser then starts from the best ``n_restarts``
-distinct ones (and from a given initial point, if any). The local optimiser is a bounded
-Newton method with the exact Hessian and a trust region when the objective provides one
-(quadratic convergence in a handful of steps), else L-BFGS-B with the analytic gradient.
+distinct ones (and from a given initial point, if any). A caller with better starts (the
+surrogate of :mod:`cascal.surrogate`) passes them instead of the screening. The local
+optimiser is a bounded Newton method with the exact Hessian and a trust region when the
+objective provides one (quadratic convergence in a handful of steps), else L-BFGS-B with
+the analytic gradient.
 The best optimum wins; every start is reported.
 """
 
@@ -213,6 +215,7 @@ def maximize(
     initial: np.ndarray | None = None,
     n_candidates: int | None = None,
     value_grad_hess: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray]] | None = None,
+    starts: list[np.ndarray] | None = None,
 ) -> OptimResult:
     """Maximise ``value`` over the box ``bounds`` from several seeded starts.
 
@@ -226,19 +229,25 @@ def maximize(
         n_candidates: Screened candidates; default ``6 * n_restarts`` (at least 16).
         value_grad_hess: Objective, gradient and Hessian (p, p), or the objective and a
             function giving the other two (see :func:`newton_maximize`): enables Newton.
+        starts: Start points (p,) to use instead of screened candidates (none screened);
+            an empty list or None screens as usual.
 
     Returns:
         The best optimum and one :class:`Start` per run.
     """
     bounds = np.asarray(bounds, dtype=float)
     n_restarts = max(int(n_restarts), 1)
-    m = n_candidates if n_candidates is not None else max(6 * n_restarts, 16)
-    cands = latin_hypercube(bounds, m, rng)
-    scores = np.array([_safe(value, c) for c in cands])
     lo, width = bounds[:, 0], bounds[:, 1] - bounds[:, 0]
     width = np.where(width > 0, width, 1.0)
     first = [] if initial is None else [np.clip(np.asarray(initial, float), lo, lo + width)]
-    picks = first + _diverse(cands, scores, (cands - lo) / width, n_restarts - len(first))
+    if starts:
+        m = 0
+        picks = first + [np.clip(np.asarray(t, float), lo, lo + width) for t in starts]
+    else:
+        m = n_candidates if n_candidates is not None else max(6 * n_restarts, 16)
+        cands = latin_hypercube(bounds, m, rng)
+        scores = np.array([_safe(value, c) for c in cands])
+        picks = first + _diverse(cands, scores, (cands - lo) / width, n_restarts - len(first))
     if not picks:
         raise NumericalError(
             "the log marginal likelihood could not be evaluated at any candidate "

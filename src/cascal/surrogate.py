@@ -1,0 +1,200 @@
+"""Start points for stage fits on nearly equally spaced readings, from cached eigenbases.
+
+On an equally spaced grid ``x_k = x_0 + k h`` the correlation matrix ``R`` of a stationary
+kernel depends on ``length_scale / h`` alone, so its eigenvectors ``Q`` and eigenvalues
+``lam`` are computed once per kernel, size and ratio, and cached. With ``z = Q^T r`` the
+profiled log marginal likelihood at noise ratio ``g`` is, up to a constant,
+``-n/2 log(sum z^2 / (lam + g)) - 1/2 sum log(lam + g)``: a whole table over
+(length scale, noise ratio) costs one matrix-vector product per length scale. A known dense
+noise ``Sigma`` enters through the diagonal of ``Q^T Sigma Q`` (from a low-rank factor).
+
+Real readings sit off the grid by their noise, so the table is a surrogate: its best local
+maxima are where exact Newton runs start, never results. Readings off the grid by more than
+a tenth of the spacing, or other kernels, get None (the caller screens at random instead).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from .kernels import Kernel, Matern32, Matern52, SquaredExp
+
+__all__ = ["dense_starts", "grid_spacing", "profiled_starts"]
+
+#: Length scale over grid spacing: the surrogate's rows (log-spaced).
+RATIOS = np.exp(np.linspace(math.log(0.3), math.log(2e4), 100))
+#: Noise over signal variance: the columns (log-spaced over the profiled bounds).
+GAINS = np.exp(np.linspace(math.log(1e-10), math.log(10.0), 45))
+#: Largest deviation from the equally spaced grid, in spacings, for the surrogate to apply.
+TOLERANCE = 0.1
+#: Local maxima this far (nats) below the best are not started from.
+MARGIN = 3.0
+#: Largest data set with a cached basis (100 eigenbases of n x n each).
+MAX_POINTS = 160
+#: Dense noise: length scales whose table row is within this many nats of the best.
+_ROWS = 20.0
+#: Dense noise: log offsets of the signal and noise variances around the row's profiled ones.
+_SIGNAL = np.linspace(-3.0, 3.0, 7)
+_NOISE = np.linspace(-4.0, 2.0, 7)
+_KERNELS = (SquaredExp, Matern32, Matern52)
+
+
+@dataclass(frozen=True, slots=True)
+class _Basis:
+    """Eigenbases of the unit-spacing correlation at every ratio: ``QT`` (r n, n) stacks
+    ``Q^T``, ``lam`` (r, n) the eigenvalues (round-off negatives clipped), ``W`` (r, n, c)
+    holds ``1 / (lam + g)`` and ``logdet`` (r, c) ``sum log(lam + g)``."""
+
+    QT: np.ndarray
+    lam: np.ndarray
+    W: np.ndarray
+    logdet: np.ndarray
+
+
+@lru_cache(maxsize=4)
+def _basis(kind: type, n: int) -> _Basis:
+    u = np.arange(n, dtype=float)
+    d = np.subtract.outer(u, u)
+    QT = np.empty((RATIOS.size, n, n))
+    lam = np.empty((RATIOS.size, n))
+    for i, ratio in enumerate(RATIOS):
+        rho, _ = kind(float(ratio), 1.0).correlation(d, False)
+        w, Q = np.linalg.eigh(rho)
+        lam[i], QT[i] = np.clip(w, 0.0, None), Q.T
+    shifted = lam[:, :, None] + GAINS
+    return _Basis(QT.reshape(-1, n), lam, 1.0 / shifted, np.log(shifted).sum(axis=1))
+
+
+def grid_spacing(x: np.ndarray) -> float | None:
+    """Spacing ``h`` of readings (n,) that lie within a tenth of it of an equally spaced
+    grid (in any order), else None."""
+    n = x.size
+    if n < 3 or n > MAX_POINTS:
+        return None
+    xs = np.sort(x)
+    h = float(xs[-1] - xs[0]) / (n - 1)
+    if not h > 0.0:
+        return None
+    dev = float(np.max(np.abs(xs - (xs[0] + h * np.arange(n)))))
+    return h if dev <= TOLERANCE * h else None
+
+
+@dataclass(frozen=True, slots=True)
+class _Scan:
+    order: np.ndarray  # sorting permutation of the readings
+    h: float
+    basis: _Basis
+    z: np.ndarray  # (r, n): Q^T r at every ratio
+    quad: np.ndarray  # (r, c): sum z^2 / (lam + g)
+    table: np.ndarray  # (r, c): profiled log marginal likelihood up to a constant
+
+
+def _scan(kernel: Kernel, x: np.ndarray, r: np.ndarray, log_ls: np.ndarray) -> _Scan | None:
+    if type(kernel) not in _KERNELS:
+        return None
+    h = grid_spacing(x)
+    if h is None:
+        return None
+    n = x.size
+    order = np.argsort(x, kind="stable")
+    basis = _basis(type(kernel), n)
+    z = (basis.QT @ r[order]).reshape(RATIOS.size, n)
+    quad = np.matmul((z * z)[:, None, :], basis.W)[:, 0, :]
+    with np.errstate(divide="ignore"):
+        table = -0.5 * n * np.log(quad) - 0.5 * basis.logdet
+    ll = np.log(RATIOS * h)
+    table[(ll < log_ls[0]) | (ll > log_ls[1])] = -np.inf
+    return _Scan(order, h, basis, z, quad, table)
+
+
+def _local_maxima(table: np.ndarray, k: int) -> list[tuple[int, ...]]:
+    """Indices of the ``k`` best local maxima of ``table`` (any dimension, neighbours
+    including diagonals) within :data:`MARGIN` of the best."""
+    pad = np.pad(table, 1, constant_values=-np.inf)
+    peak = np.isfinite(table)
+    for shift in np.ndindex(*(3,) * table.ndim):
+        if any(s != 1 for s in shift):
+            view = tuple(slice(s, s + m) for s, m in zip(shift, table.shape, strict=True))
+            peak &= table >= pad[view]
+    idx = np.argwhere(peak)
+    if not idx.size:
+        return []
+    vals = table[tuple(idx.T)]
+    best = np.argsort(-vals, kind="stable")[:k]
+    return [tuple(idx[i]) for i in best if vals[i] >= vals[best[0]] - MARGIN]
+
+
+def profiled_starts(
+    kernel: Kernel, x: np.ndarray, r: np.ndarray, bounds: np.ndarray, k: int
+) -> list[np.ndarray] | None:
+    """Up to ``k`` starts ``[log length_scale, log(noise / variance)]`` for the profiled
+    objective of residuals ``r`` (n,) at readings ``x`` (n,); None where no surrogate applies.
+
+    Args:
+        bounds: Log bounds of the profiled parameters, shape (2, 2).
+    """
+    scan = _scan(kernel, x, r, bounds[0])
+    if scan is None:
+        return None
+    ll = np.log(RATIOS * scan.h)
+    return [np.array([ll[i], math.log(GAINS[j])]) for i, j in _local_maxima(scan.table, k)]
+
+
+def dense_starts(
+    kernel: Kernel,
+    x: np.ndarray,
+    r: np.ndarray,
+    factor: np.ndarray,
+    bounds: np.ndarray,
+    k: int,
+) -> list[np.ndarray] | None:
+    """Up to ``k`` starts ``[log length_scale, log variance, log noise_variance]`` for the
+    objective with known noise ``factor @ factor.T`` (factor (n, m)) plus a learned white
+    noise; None where no surrogate applies.
+
+    The table spans the length scales whose profiled row (known noise ignored) comes within
+    20 nats of the best, and around each row's profiled variances 7 x 7 offsets.
+
+    Args:
+        bounds: Log bounds of the three parameters, shape (3, 2).
+    """
+    scan = _scan(kernel, x, r, bounds[0])
+    if scan is None:
+        return None
+    dense = _dense_table(scan, factor)
+    if dense is None:
+        return []
+    table, ll, signal, noise = dense
+    return [np.array([ll[a], signal[a, b], noise[a, c]]) for a, b, c in _local_maxima(table, k)]
+
+
+def _dense_table(scan: _Scan, factor: np.ndarray) -> tuple[np.ndarray, ...] | None:
+    """Log marginal likelihood (up to a constant) with ``diag(Q^T Sigma Q)`` for
+    ``Sigma = factor @ factor.T``: ``(table (s, 7, 7), log length scales (s,), log
+    variances (s, 7), log noise variances (s, 7))``; None if no row is finite."""
+    n = scan.z.shape[1]
+    col = np.argmax(scan.table, axis=1)
+    prof = scan.table[np.arange(RATIOS.size), col]
+    if not np.any(np.isfinite(prof)):
+        return None
+    near = np.flatnonzero(prof >= np.max(prof) - _ROWS)
+    sel = slice(int(near[0]), int(near[-1]) + 1)  # a view of the cached bases, no copy
+    QT = scan.basis.QT.reshape(RATIOS.size, n, n)[sel]
+    s = np.square(QT @ factor[scan.order]).sum(axis=2)  # diag(Q^T Sigma Q), (s, n)
+    rows = np.arange(RATIOS.size)[sel]
+    log_sf = np.log(scan.quad[rows, col[rows]] / n)
+    signal = log_sf[:, None] + _SIGNAL
+    noise = (log_sf + np.log(GAINS[col[rows]]))[:, None] + _NOISE
+    D = (
+        np.exp(signal)[:, :, None, None] * scan.basis.lam[sel][:, None, None, :]
+        + np.exp(noise)[:, None, :, None]
+        + s[:, None, None, :]
+    )
+    z2 = np.square(scan.z[sel])[:, None, None, :]
+    table = -0.5 * (z2 / D).sum(axis=-1) - 0.5 * np.log(D).sum(axis=-1)
+    table[~np.isfinite(prof[sel])] = -np.inf
+    return table, np.log(RATIOS * scan.h)[sel], signal, noise

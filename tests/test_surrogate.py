@@ -1,0 +1,147 @@
+"""Start points from cached eigenbases: exact on a grid, and never a worse fit off it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cascal import surrogate
+from cascal.gp import fit_gp
+from cascal.kernels import Matern32, Periodic, SquaredExp
+from cascal.likelihood import Objective
+from cascal.noise import Dense
+from cascal.optimize import maximize
+from utils import dense_lml, se
+
+N = 48
+
+
+def grid_data(jitter: float, seed: int = 0, n: int = N):
+    """Readings on [0.2, 1.2] off an equally spaced grid by ``jitter`` spacings (rms), and
+    residuals of a smooth map plus noise."""
+    rng = np.random.default_rng(seed)
+    h = 1.0 / (n - 1)
+    x = 0.2 + h * np.arange(n) + jitter * h * rng.standard_normal(n)
+    r = 0.01 * np.sin(6.0 * x + 1.0) + 0.004 * np.cos(17.0 * x) + 1e-4 * rng.standard_normal(n)
+    return x, r
+
+
+def stage_a_covariance(x: np.ndarray) -> np.ndarray:
+    """Posterior covariance at ``x`` of a GP on 20 points with a gap: low rank, dense."""
+    t = np.r_[np.linspace(0.2, 0.55, 10), np.linspace(0.85, 1.2, 10)]
+    K = se(t, t, 0.15, 1e-4) + 1e-8 * np.eye(t.size)
+    Ks = se(x, t, 0.15, 1e-4)
+    C = se(x, x, 0.15, 1e-4) - Ks @ np.linalg.solve(K, Ks.T)
+    return 0.5 * (C + C.T)
+
+
+def test_grid_spacing_accepts_near_grids_in_any_order_and_refuses_others():
+    x, _ = grid_data(0.01)
+    h = 1.0 / (N - 1)
+    assert surrogate.grid_spacing(x) == pytest.approx(h, rel=1e-3)
+    assert surrogate.grid_spacing(x[::-1].copy()) == pytest.approx(h, rel=1e-3)
+    assert surrogate.grid_spacing(np.sort(np.random.default_rng(1).random(N))) is None
+    assert surrogate.grid_spacing(np.array([0.0, 1.0])) is None
+    assert surrogate.grid_spacing(np.arange(surrogate.MAX_POINTS + 1.0)) is None
+
+
+@pytest.mark.parametrize("kernel", [SquaredExp(), Matern32()])
+def test_table_is_the_exact_profiled_likelihood_on_a_grid(kernel):
+    x, r = grid_data(0.0)
+    rng = np.random.default_rng(3)
+    perm = rng.permutation(N)  # the table does not depend on the order of the points
+    xp, rp = x[perm], r[perm]
+    obj = Objective(xp, rp, kernel, None, True, profile=True)
+    scan = surrogate._scan(kernel, xp, rp, np.array([-np.inf, np.inf]))
+    const = 0.5 * N * (np.log(N) - 1.0 - np.log(2 * np.pi))
+    h = 1.0 / (N - 1)
+    for i, j in [(20, 30), (30, 20), (35, 25), (40, 35), (25, 44)]:
+        theta = np.array([np.log(surrogate.RATIOS[i] * h), np.log(surrogate.GAINS[j])])
+        assert scan.table[i, j] + const == pytest.approx(obj.value(theta), abs=1e-7)
+
+
+def test_dense_table_is_exact_for_white_known_noise_on_a_grid():
+    # Sigma = c I is diagonal in every eigenbasis: the diagonal approximation is exact.
+    x, r = grid_data(0.0)
+    c = 3e-8
+    scan = surrogate._scan(SquaredExp(), x, r, np.array([-np.inf, np.inf]))
+    table, ll, signal, noise = surrogate._dense_table(scan, np.sqrt(c) * np.eye(N))
+    for a, b, k in [(0, 3, 3), (2, 1, 5), (len(ll) - 1, 6, 0), (len(ll) // 2, 4, 2)]:
+        sf2, ls, sn2 = np.exp(signal[a, b]), np.exp(ll[a]), np.exp(noise[a, k])
+        Kt = se(x, x, ls, sf2) + (c + sn2) * np.eye(N)
+        expected = dense_lml(r, Kt) + 0.5 * N * np.log(2 * np.pi)
+        assert table[a, b, k] == pytest.approx(expected, abs=1e-6)
+
+
+def test_dense_factor_reproduces_the_covariance():
+    x, _ = grid_data(0.01)
+    C = stage_a_covariance(x)
+    noise = Dense(C, atol=1e-12)
+    U = noise.factor(N)
+    assert U.shape[1] <= 16
+    lam_max = np.linalg.eigvalsh(C)[-1]
+    assert np.linalg.norm(U @ U.T - noise.cov, 2) <= 1e-4 * lam_max
+    # the base-class factor (an eigendecomposition of the dense matrix) agrees
+    from cascal.noise import NoiseSum
+
+    V = NoiseSum((noise,)).factor(N)
+    np.testing.assert_allclose(V @ V.T, U @ U.T, atol=1e-12 * lam_max)
+
+
+def thorough(obj: Objective) -> float:
+    """Best of 12 Newton starts from 96 screened candidates: an independent reference."""
+    b = obj.bounds()
+    res = maximize(
+        obj.value,
+        obj.value_and_grad,
+        b,
+        n_restarts=12,
+        n_candidates=96,
+        rng=np.random.default_rng(7),
+        value_grad_hess=obj.value_grad_hess,
+    )
+    return res.value
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_fit_from_surrogate_starts_is_as_good_as_a_thorough_search(seed):
+    x, r = grid_data(0.02, seed)
+    gp = fit_gp(x, x + r, n_restarts=3, seed=seed)
+    assert gp.optimization.n_candidates == 0  # the surrogate chose the starts
+    obj = Objective(x, r, SquaredExp(), None, True, profile=True)
+    assert gp.log_marginal_likelihood >= thorough(obj) - 1e-6
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_dense_noise_fit_from_surrogate_starts_is_as_good_as_a_thorough_search(seed):
+    x, r = grid_data(0.02, seed)
+    noise = Dense(stage_a_covariance(x), atol=1e-12)
+    gp = fit_gp(x, x + r, noise=noise, n_restarts=3, seed=seed)
+    assert gp.optimization.n_candidates == 0
+    obj = Objective(x, r, SquaredExp(), noise, True)
+    assert gp.log_marginal_likelihood >= thorough(obj) - 1e-6
+
+
+def test_scattered_readings_and_periodic_kernels_are_screened_as_before():
+    rng = np.random.default_rng(2)
+    x = np.sort(rng.random(N))
+    r = 0.01 * np.sin(6.0 * x)
+    assert fit_gp(x, x + r, n_restarts=2).optimization.n_candidates == 16
+    xg, rg = grid_data(0.0)
+    assert surrogate._scan(Periodic(1.0, 1.0, period=2.0), xg, rg, np.zeros(2)) is None
+
+
+def test_maximize_runs_the_given_starts_and_screens_nothing():
+    obj = Objective(*grid_data(0.0), SquaredExp(), None, True, profile=True)
+    b = obj.bounds()
+    t0 = [np.array([-2.0, -8.0]), np.array([-1.0, -6.0])]
+    res = maximize(
+        obj.value,
+        obj.value_and_grad,
+        b,
+        rng=np.random.default_rng(0),
+        value_grad_hess=obj.value_and_derivatives,
+        starts=t0,
+    )
+    assert res.n_candidates == 0
+    assert [s.theta0.tolist() for s in res.starts] == [t.tolist() for t in t0]
