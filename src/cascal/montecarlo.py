@@ -30,8 +30,9 @@ class StudyConfig:
 
     Attributes:
         seed: Root seed of the study.
-        n_restarts: Local optimiser starts per GP stage fit, from the best of the screened seeded
-            candidates. With three, a fit ends below the best optimum about as often as a
+        n_restarts: Local optimiser starts per GP stage fit, at most: the best screened seeded
+            candidates (stage A), or the surrogate table's best local maxima (stage B, on a
+            near grid). With three, a fit ends below the best optimum about as often as a
             five-start L-BFGS-B from random starts does (``make bench`` counts both).
         kernel: Kernel of every GP stage.
         methods: Methods compared in every trial.
