@@ -6,7 +6,8 @@ kernel depends on ``length_scale / h`` alone, so its eigenvectors ``Q`` and eige
 profiled log marginal likelihood at noise ratio ``g`` is, up to a constant,
 ``-n/2 log(sum z^2 / (lam + g)) - 1/2 sum log(lam + g)``: a whole table over
 (length scale, noise ratio) costs one matrix-vector product per length scale. A known dense
-noise ``Sigma`` enters through the diagonal of ``Q^T Sigma Q`` (from a low-rank factor).
+noise ``Sigma = U U^T`` (a low-rank factor) enters by the Woodbury identity, at the cost of
+one small m x m factorisation per table cell.
 
 Real readings sit off the grid by their noise, so the table is a surrogate: its best local
 maxima are where exact Newton runs start, never results. Readings off the grid by more than
@@ -173,9 +174,11 @@ def dense_starts(
 
 
 def _dense_table(scan: _Scan, factor: np.ndarray) -> tuple[np.ndarray, ...] | None:
-    """Log marginal likelihood (up to a constant) with ``diag(Q^T Sigma Q)`` for
-    ``Sigma = factor @ factor.T``: ``(table (s, 7, 7), log length scales (s,), log
-    variances (s, 7), log noise variances (s, 7))``; None if no row is finite."""
+    """Log marginal likelihood (up to a constant) on the grid with the known noise
+    ``Sigma = U U^T`` (``U = factor``, (n, m)) by the Woodbury identity in the eigenbasis:
+    ``K = Q D Q^T + U U^T`` with ``D = variance lam + noise``, ``C = I + U~^T D^-1 U~``,
+    ``U~ = Q^T U``. Returns ``(table (s, 7, 7), log length scales (s,), log variances
+    (s, 7), log noise variances (s, 7))``; None if no row is finite."""
     n = scan.z.shape[1]
     col = np.argmax(scan.table, axis=1)
     prof = scan.table[np.arange(RATIOS.size), col]
@@ -183,18 +186,27 @@ def _dense_table(scan: _Scan, factor: np.ndarray) -> tuple[np.ndarray, ...] | No
         return None
     near = np.flatnonzero(prof >= np.max(prof) - _ROWS)
     sel = slice(int(near[0]), int(near[-1]) + 1)  # a view of the cached bases, no copy
-    QT = scan.basis.QT.reshape(RATIOS.size, n, n)[sel]
-    s = np.square(QT @ factor[scan.order]).sum(axis=2)  # diag(Q^T Sigma Q), (s, n)
     rows = np.arange(RATIOS.size)[sel]
+    Ut = scan.basis.QT.reshape(RATIOS.size, n, n)[sel] @ factor[scan.order]  # (s, n, m)
+    s, m = Ut.shape[0], Ut.shape[2]
     log_sf = np.log(scan.quad[rows, col[rows]] / n)
     signal = log_sf[:, None] + _SIGNAL
     noise = (log_sf + np.log(GAINS[col[rows]]))[:, None] + _NOISE
+    cells = _SIGNAL.size * _NOISE.size
     D = (
         np.exp(signal)[:, :, None, None] * scan.basis.lam[sel][:, None, None, :]
         + np.exp(noise)[:, None, :, None]
-        + s[:, None, None, :]
-    )
-    z2 = np.square(scan.z[sel])[:, None, None, :]
-    table = -0.5 * (z2 / D).sum(axis=-1) - 0.5 * np.log(D).sum(axis=-1)
+    ).reshape(s, cells, n)
+    inv = 1.0 / D
+    z = scan.z[sel]
+    outer = (Ut[:, :, :, None] * Ut[:, :, None, :]).reshape(s, n, m * m)
+    C = (inv @ outer).reshape(s, cells, m, m) + np.eye(m)
+    w = (inv * z[:, None, :]) @ Ut  # (s, cells, m)
+    L = np.linalg.cholesky(C)
+    v = np.linalg.solve(C, w[..., None])[..., 0]
+    quad = inv @ np.square(z)[:, :, None]  # (s, cells, 1)
+    logdet = np.log(D).sum(axis=-1) + 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(-1)
+    table = -0.5 * (quad[..., 0] - (w * v).sum(axis=-1)) - 0.5 * logdet
+    table = table.reshape(s, _SIGNAL.size, _NOISE.size)
     table[~np.isfinite(prof[sel])] = -np.inf
     return table, np.log(RATIOS * scan.h)[sel], signal, noise
