@@ -9,7 +9,7 @@ from cascal import surrogate
 from cascal.gp import fit_gp
 from cascal.kernels import Matern32, Periodic, SquaredExp
 from cascal.likelihood import Objective
-from cascal.noise import Dense
+from cascal.noise import Dense, NoiseSum
 from cascal.optimize import maximize
 from utils import dense_lml, se
 
@@ -97,8 +97,6 @@ def test_dense_factor_reproduces_the_covariance():
     lam_max = np.linalg.eigvalsh(C)[-1]
     assert np.linalg.norm(U @ U.T - noise.cov, 2) <= 1e-4 * lam_max
     # the base-class factor (an eigendecomposition of the dense matrix) agrees
-    from cascal.noise import NoiseSum
-
     V = NoiseSum((noise,)).factor(N)
     np.testing.assert_allclose(V @ V.T, U @ U.T, atol=1e-12 * lam_max)
 

@@ -296,7 +296,7 @@ def _fit_gp(
         starts = None
         if profile:
             starts = surrogate.profiled_starts(kern, xa, r, b, n_restarts)
-        elif known is not None and learn_noise and not bounded and obj.dim == 3:
+        elif known is not None and not known.is_diagonal and learn_noise and not bounded:
             starts = surrogate.dense_starts(kern, xa, r, known.factor(n), b, n_restarts)
         optimization = maximize(
             obj.value,
