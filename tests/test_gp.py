@@ -306,12 +306,17 @@ def test_determinism(data):
 
 def test_optimization_diagnostics(data):
     x, y = data
-    fit = fit_gp(x, y, kernel="se", n_restarts=4, seed=0)
+    # screened random candidates (the periodic kernel has no table of starts)
+    fit = fit_gp(x, y, kernel="periodic", period=2.0 * np.ptp(x), n_restarts=4, seed=0)
     opt = fit.optimization
     assert len(opt.starts) == 4
     assert opt.value == max(s.value for s in opt.starts)
     assert opt.n_evals == opt.n_candidates + sum(s.n_evals for s in opt.starts)
     assert opt.n_candidates >= 16
+    # starts from the table of the profiled likelihood: its best local maxima, at most 4
+    opt = fit_gp(x, y, kernel="se", n_restarts=4, seed=0).optimization
+    assert 1 <= len(opt.starts) <= 4 and opt.n_candidates == 0
+    assert opt.value == max(s.value for s in opt.starts)
 
 
 def test_hyperparameters_dict(data):

@@ -1,4 +1,4 @@
-"""Start points from cached eigenbases: exact on a grid, and never a worse fit off it."""
+"""Start points from likelihood tables: exact on a grid and off it, never a worse fit."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from cascal import surrogate
 from cascal.gp import fit_gp
-from cascal.kernels import Matern32, Periodic, SquaredExp
+from cascal.kernels import Matern32, Matern52, Periodic, SquaredExp
 from cascal.likelihood import Objective
 from cascal.noise import Dense, NoiseSum
 from cascal.optimize import maximize
@@ -135,13 +135,63 @@ def test_dense_noise_fit_from_surrogate_starts_is_as_good_as_a_thorough_search(s
     assert gp.log_marginal_likelihood >= thorough(obj) - 1e-6
 
 
-def test_scattered_readings_and_periodic_kernels_are_screened_as_before():
-    rng = np.random.default_rng(2)
-    x = np.sort(rng.random(N))
-    r = 0.01 * np.sin(6.0 * x)
-    assert fit_gp(x, x + r, n_restarts=2).optimization.n_candidates == 16
+def scattered_data(seed: int, n: int = N):
+    """Readings at random positions with a gap in the middle (like the paper's D2), in
+    random order, and residuals of a smooth map plus noise."""
+    rng = np.random.default_rng(seed)
+    x = np.r_[rng.uniform(0.0, 0.4, n // 2), rng.uniform(0.6, 1.0, n - n // 2)]
+    r = 0.01 * np.sin(6.0 * x + 1.0) + 0.004 * np.cos(17.0 * x) + 1e-4 * rng.standard_normal(n)
+    return x, r
+
+
+@pytest.mark.parametrize("kernel", [SquaredExp(), Matern32(), Matern52()])
+def test_offgrid_table_is_the_exact_profiled_likelihood(kernel):
+    x, r = scattered_data(5)
+    assert surrogate.grid_spacing(x) is None
+    obj = Objective(x, r, kernel, None, True, profile=True)
+    log_ls = np.log([0.01, 0.07, 0.3, 2.0])
+    table = surrogate._tridiagonal_table(type(kernel), x, r, log_ls)
+    const = 0.5 * N * (np.log(N) - 1.0 - np.log(2 * np.pi))
+    checked = 0
+    for i, ll in enumerate(log_ls):
+        for j in range(0, surrogate.GAINS.size, 4):
+            A = type(kernel)(np.exp(ll), 1.0)(x) + surrogate.GAINS[j] * np.eye(N)
+            if np.linalg.cond(A) > 1e8:  # both formulas are then only good to round-off
+                continue
+            theta = np.array([ll, np.log(surrogate.GAINS[j])])
+            assert table[i, j] + const == pytest.approx(obj.value(theta), abs=1e-7)
+            checked += 1
+    assert checked >= 20
+
+
+def test_offgrid_table_marks_non_positive_definite_cells():
+    x, r = scattered_data(5)
+    x[1] = x[0]  # a repeated position: R is singular, R + g I only just positive definite
+    table = surrogate._tridiagonal_table(SquaredExp, x, r, np.log([1e3]))
+    assert np.all(np.isneginf(table) | np.isfinite(table))
+    assert np.all(np.isfinite(table[:, -10:]))
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("kernel", ["se", "matern32"])
+def test_fit_from_offgrid_starts_is_as_good_as_a_thorough_search(seed, kernel):
+    x, r = scattered_data(seed)
+    gp = fit_gp(x, x + r, kernel=kernel, n_restarts=3, seed=seed)
+    assert gp.optimization.n_candidates == 0  # the table chose the starts
+    k = SquaredExp() if kernel == "se" else Matern32()
+    obj = Objective(x, r, k, None, True, profile=True)
+    assert gp.log_marginal_likelihood >= thorough(obj) - 1e-6
+
+
+def test_periodic_kernels_and_large_offgrid_sets_are_screened_as_before():
+    x, r = scattered_data(2)
+    gp = fit_gp(x, x + r, kernel="periodic", period=2.0, n_restarts=2)
+    assert gp.optimization.n_candidates == 16
     xg, rg = grid_data(0.0)
     assert surrogate._scan(Periodic(1.0, 1.0, period=2.0), xg, rg, np.zeros(2)) is None
+    b = np.array([[-3.0, 1.0], [-20.0, 2.0]])
+    xl = np.sort(np.random.default_rng(3).random(surrogate.MAX_OFFGRID + 1))
+    assert surrogate.profiled_starts(SquaredExp(), xl, np.sin(xl), b, 2) is None
 
 
 def test_maximize_runs_the_given_starts_and_screens_nothing():

@@ -1,17 +1,24 @@
-"""Start points for stage fits on nearly equally spaced readings, from cached eigenbases.
+"""Start points for stage fits from a table of the profiled log marginal likelihood.
 
-On an equally spaced grid ``x_k = x_0 + k h`` the correlation matrix ``R`` of a stationary
-kernel depends on ``length_scale / h`` alone, so its eigenvectors ``Q`` and eigenvalues
-``lam`` are computed once per kernel, size and ratio, and cached. With ``z = Q^T r`` the
-profiled log marginal likelihood at noise ratio ``g`` is, up to a constant,
-``-n/2 log(sum z^2 / (lam + g)) - 1/2 sum log(lam + g)``: a whole table over
-(length scale, noise ratio) costs one matrix-vector product per length scale. A known dense
-noise ``Sigma = U U^T`` (a low-rank factor) enters by the Woodbury identity, at the cost of
-one small m x m factorisation per table cell.
+The profiled log marginal likelihood (kernel variance maximised out) at length scale ``l``
+and noise ratio ``g`` is, up to a constant,
+``-n/2 log(r^T (R + g I)^-1 r) - 1/2 log det(R + g I)`` with ``R`` the correlation matrix.
+One decomposition of ``R`` per length scale gives a whole row over ``g``:
 
-Real readings sit off the grid by their noise, so the table is a surrogate: its best local
-maxima are where exact Newton runs start, never results. Readings off the grid by more than
-a tenth of the spacing, or other kernels, get None (the caller screens at random instead).
+* On an equally spaced grid ``x_k = x_0 + k h``, ``R`` of a stationary kernel depends on
+  ``l / h`` alone, so its eigenvectors ``Q`` and eigenvalues ``lam`` are computed once per
+  kernel, size and ratio, and cached; with ``z = Q^T r`` a row is
+  ``-n/2 log(sum z^2 / (lam + g)) - 1/2 sum log(lam + g)``, one matrix-vector product.
+  A known dense noise ``Sigma = U U^T`` (a low-rank factor) enters by the Woodbury
+  identity, at the cost of one small m x m factorisation per table cell.
+* Off the grid, each row costs a tridiagonal reduction of ``R`` whose first basis vector is
+  ``r / |r|`` (:func:`_tridiagonal_table`): coarse rows over the length-scale bounds, then
+  finer rows around the coarse table's best local maxima.
+
+Real readings sit off the grid by their noise, so the grid table is a surrogate; the exact
+off-grid table is coarse. Either way its best local maxima are where exact Newton runs
+start, never results. Other kernels (periodic, composite) get None: the caller screens
+random candidates instead.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from scipy.linalg import lapack
 
 from .kernels import Kernel, Matern32, Matern52, SquaredExp
 
@@ -36,6 +44,12 @@ TOLERANCE = 0.1
 MARGIN = 3.0
 #: Largest data set with a cached basis (100 eigenbases of n x n each).
 MAX_POINTS = 160
+#: Off the grid: coarse rows this far apart (log length scale), then rows this far apart
+#: between the neighbours of the coarse table's best local maxima.
+COARSE = 0.8
+FINE = 0.2
+#: Largest off-grid data set given a table (each row costs O(n^3)).
+MAX_OFFGRID = 500
 #: Dense noise: length scales whose table row is within this many nats of the best.
 _ROWS = 20.0
 #: Dense noise: log offsets of the signal and noise variances around the row's profiled ones.
@@ -139,10 +153,76 @@ def profiled_starts(
         bounds: Log bounds of the profiled parameters, shape (2, 2).
     """
     scan = _scan(kernel, x, r, bounds[0])
-    if scan is None:
+    if scan is not None:
+        ll, table = np.log(RATIOS * scan.h), scan.table
+    elif type(kernel) in _KERNELS and 3 <= x.size <= MAX_OFFGRID:
+        ll, table = _offgrid_table(type(kernel), x, r, bounds[0], k)
+    else:
         return None
-    ll = np.log(RATIOS * scan.h)
-    return [np.array([ll[i], math.log(GAINS[j])]) for i, j in _local_maxima(scan.table, k)]
+    return [np.array([ll[i], math.log(GAINS[j])]) for i, j in _local_maxima(table, k)]
+
+
+def _offgrid_table(
+    kind: type, x: np.ndarray, r: np.ndarray, log_ls: np.ndarray, k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows ``(log length scales (s,), table (s, c))``, sorted: :data:`COARSE` apart over
+    ``log_ls`` (2,), plus rows :data:`FINE` apart out to the neighbours of each of the
+    coarse table's ``k`` best local maxima."""
+    lo, hi = float(log_ls[0]), float(log_ls[1])
+    ll = np.linspace(lo, hi, math.ceil((hi - lo) / COARSE) + 1)
+    table = _tridiagonal_table(kind, x, r, ll)
+    if ll.size > 1:
+        offsets = np.arange(FINE, ll[1] - ll[0] - 0.5 * FINE, FINE)
+        fine = np.unique(
+            [ll[i] + s * o for i, _ in _local_maxima(table, k) for s in (-1, 1) for o in offsets]
+        )
+        fine = fine[(fine > lo) & (fine < hi)]
+        if fine.size:
+            ll = np.concatenate([ll, fine])
+            table = np.concatenate([table, _tridiagonal_table(kind, x, r, fine)])
+            order = np.argsort(ll, kind="stable")
+            ll, table = ll[order], table[order]
+    return ll, table
+
+
+def _tridiagonal_table(kind: type, x: np.ndarray, r: np.ndarray, log_ls: np.ndarray) -> np.ndarray:
+    """Profiled log marginal likelihood, up to a constant, at length scales ``exp(log_ls)``
+    (s,) and noise ratios :data:`GAINS` (c,) for readings ``x`` (n,) in any position:
+    shape (s, c), -inf where not positive definite.
+
+    LAPACK's tridiagonal reduction of the bordered matrix ``[[0, r^T], [r, R]]`` keeps the
+    first coordinate, so it gives ``R = V T V^T`` with ``V``'s first column ``r / |r|``.
+    With the pivots of the backward recurrence ``p_(n-1) = t_(n-1) + g``,
+    ``p_i = t_i + g - e_i^2 / p_(i+1)`` (``t`` the diagonal of ``T``, ``e`` its
+    off-diagonal): ``r^T (R + g I)^-1 r = |r|^2 / p_0`` and ``det(R + g I) = prod p_i``.
+    So a row costs one reduction and O(n) per cell, vectorised over the table.
+    """
+    n, s = x.size, log_ls.size
+    d = np.subtract.outer(x, x)
+    bordered = np.zeros((n + 1, n + 1))
+    bordered[1:, 0] = r
+    diag = np.empty((n, s))
+    off2 = np.zeros((n, s, 1))
+    for i, ll in enumerate(log_ls.tolist()):
+        bordered[1:, 1:] = kind(math.exp(ll), 1.0).correlation(d, False)[0]
+        _, t, e, _, _ = lapack.dsytrd(bordered, lower=1)
+        diag[:, i] = t[1:]
+        off2[:-1, i, 0] = np.square(e[1:])
+    pivots = diag[:, :, None] + GAINS  # (n, s, c), overwritten by the recurrence
+    ratio = np.empty((s, GAINS.size))
+    for i in range(n - 2, -1, -1):
+        np.divide(off2[i], pivots[i + 1], out=ratio)
+        pivots[i] -= ratio
+    # log det as the sum of logs of products of 8 pivots: 8 times fewer logarithms, and
+    # pivots between 1e-10 and n cannot over- or underflow in a product of 8
+    pad = -n % 8
+    if pad:
+        pivots = np.concatenate([pivots, np.ones((pad, s, GAINS.size))])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        logdet = np.log(pivots.reshape(-1, 8, s, GAINS.size).prod(axis=1)).sum(axis=0)
+        table = -0.5 * n * np.log(float(r @ r) / pivots[0]) - 0.5 * logdet
+    table[~np.isfinite(table) | np.any(pivots <= 0.0, axis=0)] = -np.inf
+    return table
 
 
 def dense_starts(
