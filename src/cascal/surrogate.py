@@ -258,7 +258,8 @@ def _dense_table(scan: _Scan, factor: np.ndarray) -> tuple[np.ndarray, ...] | No
     ``Sigma = U U^T`` (``U = factor``, (n, m)) by the Woodbury identity in the eigenbasis:
     ``K = Q D Q^T + U U^T`` with ``D = variance lam + noise``, ``C = I + U~^T D^-1 U~``,
     ``U~ = Q^T U``. Returns ``(table (s, 7, 7), log length scales (s,), log variances
-    (s, 7), log noise variances (s, 7))``; None if no row is finite."""
+    (s, 7), log noise variances (s, 7))``; None if no row is finite or round-off breaks a
+    cell's factorisation (then the caller screens)."""
     n = scan.z.shape[1]
     col = np.argmax(scan.table, axis=1)
     prof = scan.table[np.arange(RATIOS.size), col]
@@ -273,20 +274,32 @@ def _dense_table(scan: _Scan, factor: np.ndarray) -> tuple[np.ndarray, ...] | No
     signal = log_sf[:, None] + _SIGNAL
     noise = (log_sf + np.log(GAINS[col[rows]]))[:, None] + _NOISE
     cells = _SIGNAL.size * _NOISE.size
+    # D in units of the row's profiled variance, so that products of 8 stay in range
     D = (
-        np.exp(signal)[:, :, None, None] * scan.basis.lam[sel][:, None, None, :]
-        + np.exp(noise)[:, None, :, None]
+        np.exp(_SIGNAL)[None, :, None, None] * scan.basis.lam[sel][:, None, None, :]
+        + np.exp(noise - log_sf[:, None])[:, None, :, None]
     ).reshape(s, cells, n)
-    inv = 1.0 / D
-    z = scan.z[sel]
-    outer = (Ut[:, :, :, None] * Ut[:, :, None, :]).reshape(s, n, m * m)
-    C = (inv @ outer).reshape(s, cells, m, m) + np.eye(m)
-    w = (inv * z[:, None, :]) @ Ut  # (s, cells, m)
-    L = np.linalg.cholesky(C)
-    v = np.linalg.solve(C, w[..., None])[..., 0]
-    quad = inv @ np.square(z)[:, :, None]  # (s, cells, 1)
-    logdet = np.log(D).sum(axis=-1) + 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(-1)
-    table = -0.5 * (quad[..., 0] - (w * v).sum(axis=-1)) - 0.5 * logdet
+    inv = 1.0 / (D * np.exp(log_sf)[:, None, None])
+    # [U~, z]^T D^-1 [U~, z] holds C - I, w = U~^T D^-1 z and z^T D^-1 z; its Cholesky
+    # factor (with I added to C) ends in sqrt(z^T D^-1 z - w^T C^-1 w) = sqrt(r^T K^-1 r)
+    Uz = np.concatenate([Ut, scan.z[sel][:, :, None]], axis=2)  # (s, n, m + 1)
+    lo, hi = np.tril_indices(m + 1)  # NumPy's Cholesky reads the lower triangle only
+    A = np.zeros((s, cells, m + 1, m + 1))
+    A[..., lo, hi] = inv @ (Uz[:, :, lo] * Uz[:, :, hi])
+    A[..., np.arange(m), np.arange(m)] += 1.0
+    try:
+        L = np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:  # r^T K^-1 r lost to round-off in some cell
+        return None
+    piv = np.diagonal(L, axis1=-2, axis2=-1)
+    pad = -n % 8
+    Dp = np.concatenate([D, np.ones((s, cells, pad))], axis=-1) if pad else D
+    logdet = (
+        n * log_sf[:, None]
+        + np.log(Dp.reshape(s, cells, -1, 8).prod(axis=-1)).sum(axis=-1)
+        + 2.0 * np.log(piv[..., :m]).sum(axis=-1)
+    )
+    table = -0.5 * np.square(piv[..., m]) - 0.5 * logdet
     table = table.reshape(s, _SIGNAL.size, _NOISE.size)
     table[~np.isfinite(prof[sel])] = -np.inf
     return table, np.log(RATIOS * scan.h)[sel], signal, noise
