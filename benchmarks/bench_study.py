@@ -1,10 +1,11 @@
 """The paper's Monte Carlo study, timed: wall time, trials per second, split per method.
 
-Then a quality check on further trials: each stage fit of the study's optimiser (screened
-seeded starts, ``StudyConfig.n_restarts``) against a plain five-start L-BFGS-B from uniformly
-random starts in the same bounds. Both are multi-start searches of non-convex likelihoods, so
-either can miss the best optimum of a fit; the check counts, in both directions, the fits in
-which one ends more than 1e-3 below the other, and prints the largest such gap.
+Then a quality check on further trials: each stage fit of the study's optimiser (Newton
+runs from a likelihood table's best maxima, at most ``StudyConfig.n_restarts``) against a
+plain five-start L-BFGS-B from uniformly random starts in the same bounds. Both are
+multi-start searches of non-convex likelihoods, so either can miss the best optimum of a
+fit; the check counts, in both directions, the fits in which one ends more than 1e-3 below
+the other, and prints the largest such gap.
 """
 
 from __future__ import annotations

@@ -238,7 +238,9 @@ def fit_gp(
             unless ``noise`` is a number or a vector.
         hyperparameters: Given values by name (``length_scale``, ``variance``,
             ``noise_variance``, ...); nothing is optimised.
-        n_restarts: Number of local optimiser starts (after screening seeded candidates).
+        n_restarts: Local optimiser starts: the best local maxima of a likelihood table
+            (SE and Matern kernels, :mod:`cascal.surrogate`), at most this many; else
+            exactly this many, after screening seeded random candidates.
         seed: Seed or Generator for the starts.
         period: Period of the ``"periodic"`` kernel, in the unit of ``x``.
         bounds: Optimisation bounds by hyperparameter name, natural units.
