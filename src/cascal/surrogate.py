@@ -170,7 +170,8 @@ def _offgrid_table(
     coarse table's ``k`` best local maxima."""
     lo, hi = float(log_ls[0]), float(log_ls[1])
     ll = np.linspace(lo, hi, math.ceil((hi - lo) / COARSE) + 1)
-    table = _tridiagonal_table(kind, x, r, ll)
+    d = np.subtract.outer(x, x)
+    table = _tridiagonal_table(kind, d, r, ll)
     if ll.size > 1:
         offsets = np.arange(FINE, ll[1] - ll[0] - 0.5 * FINE, FINE)
         fine = np.unique(
@@ -179,16 +180,16 @@ def _offgrid_table(
         fine = fine[(fine > lo) & (fine < hi)]
         if fine.size:
             ll = np.concatenate([ll, fine])
-            table = np.concatenate([table, _tridiagonal_table(kind, x, r, fine)])
+            table = np.concatenate([table, _tridiagonal_table(kind, d, r, fine)])
             order = np.argsort(ll, kind="stable")
             ll, table = ll[order], table[order]
     return ll, table
 
 
-def _tridiagonal_table(kind: type, x: np.ndarray, r: np.ndarray, log_ls: np.ndarray) -> np.ndarray:
+def _tridiagonal_table(kind: type, d: np.ndarray, r: np.ndarray, log_ls: np.ndarray) -> np.ndarray:
     """Profiled log marginal likelihood, up to a constant, at length scales ``exp(log_ls)``
-    (s,) and noise ratios :data:`GAINS` (c,) for readings ``x`` (n,) in any position:
-    shape (s, c), -inf where not positive definite.
+    (s,) and noise ratios :data:`GAINS` (c,) for readings in any position, given by their
+    differences ``d`` (n, n): shape (s, c), -inf where not positive definite.
 
     LAPACK's tridiagonal reduction of the bordered matrix ``[[0, r^T], [r, R]]`` keeps the
     first coordinate, so it gives ``R = V T V^T`` with ``V``'s first column ``r / |r|``.
@@ -197,8 +198,7 @@ def _tridiagonal_table(kind: type, x: np.ndarray, r: np.ndarray, log_ls: np.ndar
     off-diagonal): ``r^T (R + g I)^-1 r = |r|^2 / p_0`` and ``det(R + g I) = prod p_i``.
     So a row costs one reduction and O(n) per cell, vectorised over the table.
     """
-    n, s = x.size, log_ls.size
-    d = np.subtract.outer(x, x)
+    n, s = r.size, log_ls.size
     bordered = np.zeros((n + 1, n + 1))
     bordered[1:, 0] = r
     diag = np.empty((n, s))
@@ -213,16 +213,22 @@ def _tridiagonal_table(kind: type, x: np.ndarray, r: np.ndarray, log_ls: np.ndar
     for i in range(n - 2, -1, -1):
         np.divide(off2[i], pivots[i + 1], out=ratio)
         pivots[i] -= ratio
-    # log det as the sum of logs of products of 8 pivots: 8 times fewer logarithms, and
-    # pivots between 1e-10 and n cannot over- or underflow in a product of 8
-    pad = -n % 8
-    if pad:
-        pivots = np.concatenate([pivots, np.ones((pad, s, GAINS.size))])
     with np.errstate(divide="ignore", invalid="ignore"):
-        logdet = np.log(pivots.reshape(-1, 8, s, GAINS.size).prod(axis=1)).sum(axis=0)
+        logdet = _sum_log(pivots, axis=0)  # pivots lie between 1e-10 and about n
         table = -0.5 * n * np.log(float(r @ r) / pivots[0]) - 0.5 * logdet
     table[~np.isfinite(table) | np.any(pivots <= 0.0, axis=0)] = -np.inf
     return table
+
+
+def _sum_log(a: np.ndarray, axis: int) -> np.ndarray:
+    """``log(a).sum(axis)`` with 8 times fewer logarithms: the logs of products of 8.
+    For entries between about 1e-30 and 1e30, so that no product over- or underflows."""
+    axis %= a.ndim
+    pad = -a.shape[axis] % 8
+    if pad:
+        a = np.concatenate([a, np.ones((*a.shape[:axis], pad, *a.shape[axis + 1 :]))], axis)
+    groups = a.reshape(*a.shape[:axis], -1, 8, *a.shape[axis + 1 :])
+    return np.log(groups.prod(axis=axis + 1)).sum(axis=axis)
 
 
 def dense_starts(
@@ -292,13 +298,7 @@ def _dense_table(scan: _Scan, factor: np.ndarray) -> tuple[np.ndarray, ...] | No
     except np.linalg.LinAlgError:  # r^T K^-1 r lost to round-off in some cell
         return None
     piv = np.diagonal(L, axis1=-2, axis2=-1)
-    pad = -n % 8
-    Dp = np.concatenate([D, np.ones((s, cells, pad))], axis=-1) if pad else D
-    logdet = (
-        n * log_sf[:, None]
-        + np.log(Dp.reshape(s, cells, -1, 8).prod(axis=-1)).sum(axis=-1)
-        + 2.0 * np.log(piv[..., :m]).sum(axis=-1)
-    )
+    logdet = n * log_sf[:, None] + _sum_log(D, axis=-1) + 2.0 * np.log(piv[..., :m]).sum(axis=-1)
     table = -0.5 * np.square(piv[..., m]) - 0.5 * logdet
     table = table.reshape(s, _SIGNAL.size, _NOISE.size)
     table[~np.isfinite(prof[sel])] = -np.inf
