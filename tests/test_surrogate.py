@@ -208,3 +208,31 @@ def test_maximize_runs_the_given_starts_and_screens_nothing():
     )
     assert res.n_candidates == 0
     assert [s.theta0.tolist() for s in res.starts] == [t.tolist() for t in t0]
+
+
+def test_lowrank_rows_agree_with_the_dense_reduction_within_the_dropped_part(monkeypatch):
+    n = 120
+    x, r = scattered_data(7, n=n)
+    d = np.subtract.outer(x, x)
+    log_ls = np.log([0.004, 0.03, 0.08, 0.3, 1.0, 30.0])
+    used = []
+    lowrank = surrogate._lowrank_reduction
+
+    def spy(R, r):
+        out = lowrank(R, r)
+        used.append(None if out is None else out[0].size - 1)
+        return out
+
+    monkeypatch.setattr(surrogate, "_lowrank_reduction", spy)
+    fast = surrogate._tridiagonal_table(SquaredExp, d, r, log_ls)
+    assert used[-1] is None and len(used) >= 4  # long scales low rank, the shortest not
+    assert all(k is not None and k <= n // 2 for k in used[:-1])
+    monkeypatch.setattr(surrogate, "LOWRANK", 0.0)
+    dense = surrogate._tridiagonal_table(SquaredExp, d, r, log_ls)
+    assert np.array_equal(np.isfinite(fast), np.isfinite(dense))
+    # the dropped part (trace below PIVOT_TOL) and round-off (n eps) bound the difference
+    g = surrogate.GAINS
+    bound = 0.5 * (n + 1) * (surrogate.PIVOT_TOL + n * np.finfo(float).eps) / g + 1e-9
+    ok = np.isfinite(dense)
+    assert np.all((np.abs(fast - dense) <= bound)[ok])
+    assert np.max(np.abs(fast - dense)[:, g >= 1e-6]) < 1e-6

@@ -13,7 +13,9 @@ One decomposition of ``R`` per length scale gives a whole row over ``g``:
   identity, at the cost of one small m x m factorisation per table cell.
 * Off the grid, each row costs a tridiagonal reduction of ``R`` whose first basis vector is
   ``r / |r|`` (:func:`_tridiagonal_table`): coarse rows over the length-scale bounds, then
-  finer rows around the coarse table's best local maxima.
+  finer rows around the coarse table's best local maxima. Where ``R`` is numerically of
+  low rank ``k`` (long length scales, above all for the squared exponential), a pivoted
+  Cholesky factor makes the reduction O(n k^2) instead of O(n^3).
 
 Real readings sit off the grid by their noise, so the grid table is a surrogate; the exact
 off-grid table is coarse. Either way its best local maxima are where exact Newton runs
@@ -50,6 +52,11 @@ COARSE = 0.8
 FINE = 0.2
 #: Largest off-grid data set given a table (each row costs O(n^3)).
 MAX_OFFGRID = 500
+#: Off the grid: a row whose correlation matrix has a pivoted Cholesky factor of rank up to
+#: this fraction of n, stopped where every remaining pivot is below PIVOT_TOL / n, is
+#: reduced through the factor (O(n k^2)); other rows by a dense O(n^3) reduction.
+LOWRANK = 0.5
+PIVOT_TOL = 1e-13
 #: Dense noise: length scales whose table row is within this many nats of the best.
 _ROWS = 20.0
 #: Dense noise: log offsets of the signal and noise variances around the row's profiled ones.
@@ -191,33 +198,88 @@ def _tridiagonal_table(kind: type, d: np.ndarray, r: np.ndarray, log_ls: np.ndar
     (s,) and noise ratios :data:`GAINS` (c,) for readings in any position, given by their
     differences ``d`` (n, n): shape (s, c), -inf where not positive definite.
 
-    LAPACK's tridiagonal reduction of the bordered matrix ``[[0, r^T], [r, R]]`` keeps the
-    first coordinate, so it gives ``R = V T V^T`` with ``V``'s first column ``r / |r|``.
-    With the pivots of the backward recurrence ``p_(n-1) = t_(n-1) + g``,
+    A tridiagonal ``T`` with ``R = V T V^T`` and ``V``'s first column ``r / |r|`` gives a
+    row: with the pivots of the backward recurrence ``p_(m-1) = t_(m-1) + g``,
     ``p_i = t_i + g - e_i^2 / p_(i+1)`` (``t`` the diagonal of ``T``, ``e`` its
-    off-diagonal): ``r^T (R + g I)^-1 r = |r|^2 / p_0`` and ``det(R + g I) = prod p_i``.
-    So a row costs one reduction and O(n) per cell, vectorised over the table.
+    off-diagonal), ``r^T (R + g I)^-1 r = |r|^2 / p_0`` and ``det(R + g I) = prod p_i``
+    times ``g`` for each of the ``n - m`` directions in which ``R`` vanishes. So a row costs
+    one reduction (:func:`_lowrank_reduction` or :func:`_full_reduction`) and O(n) per
+    cell, vectorised over the table.
     """
     n, s = r.size, log_ls.size
     bordered = np.zeros((n + 1, n + 1))
-    bordered[1:, 0] = r
-    diag = np.empty((n, s))
-    off2 = np.zeros((n, s, 1))
-    for i, ll in enumerate(log_ls.tolist()):
-        bordered[1:, 1:] = kind(math.exp(ll), 1.0).correlation(d, False)[0]
-        _, t, e, _, _ = lapack.dsytrd(bordered, lower=1)
-        diag[:, i] = t[1:]
-        off2[:-1, i, 0] = np.square(e[1:])
-    pivots = diag[:, :, None] + GAINS  # (n, s, c), overwritten by the recurrence
+    reductions: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    lowrank = True  # rows from the longest length scale down, while R stays of low rank
+    for i in np.argsort(-log_ls, kind="stable").tolist():
+        length_scale = math.exp(float(log_ls[i]))
+        red = None
+        if lowrank:
+            red = _lowrank_reduction(_correlation(kind, d, length_scale), r)
+            lowrank = red is not None
+        if red is None:
+            bordered[0, 1:] = r  # the reduction overwrites it
+            bordered[1:, 1:] = _correlation(kind, d, length_scale)
+            red = _full_reduction(bordered)
+        reductions[i] = red
+    m = -(-max(t.size for t, _ in reductions.values()) // 8) * 8  # rows of 8 for _sum_log
+    diag = np.zeros((m, s))
+    off2 = np.zeros((m, s, 1))
+    for i, (t, e) in reductions.items():
+        diag[: t.size, i] = t
+        off2[: e.size, i, 0] = np.square(e)
+    pivots = diag[:, :, None] + GAINS  # (m, s, c), overwritten by the recurrence
     ratio = np.empty((s, GAINS.size))
-    for i in range(n - 2, -1, -1):
+    for i in range(m - 2, -1, -1):
         np.divide(off2[i], pivots[i + 1], out=ratio)
         pivots[i] -= ratio
     with np.errstate(divide="ignore", invalid="ignore"):
-        logdet = _sum_log(pivots, axis=0)  # pivots lie between 1e-10 and about n
+        logdet = _sum_log(pivots, axis=0) + (n - m) * np.log(GAINS)  # pivots in [1e-10, n]
         table = -0.5 * n * np.log(float(r @ r) / pivots[0]) - 0.5 * logdet
     table[~np.isfinite(table) | np.any(pivots <= 0.0, axis=0)] = -np.inf
     return table
+
+
+def _full_reduction(bordered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(t (n,), e (n - 1,))`` of ``R``'s tridiagonal form from LAPACK's reduction of the
+    bordered matrix ``[[0, r^T], [r, R]]`` (n + 1, n + 1; its upper triangle is read and
+    overwritten), which keeps the first coordinate. O(n^3); a workspace of 8 columns is the
+    fastest blocking here (n from 65 to 500)."""
+    m = bordered.shape[0]
+    _, t, e, _, _ = lapack.dsytrd(bordered.T, lower=1, lwork=8 * m, overwrite_a=1)
+    return t[1:], e[1:]
+
+
+def _lowrank_reduction(R: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(t (k + 1,), e (k,))`` of ``R``'s tridiagonal form when a pivoted Cholesky factor
+    ``R = L L^T + E`` (L (n, k)) stops at rank ``k <= LOWRANK n``, else None. O(n k^2).
+
+    The factor stops where every remaining pivot is below ``PIVOT_TOL / n``, so the dropped
+    part ``E`` is positive semi-definite with trace below :data:`PIVOT_TOL`: it changes a
+    cell by at most ``(n + 1) / 2 * PIVOT_TOL / g``, the size of the dense reduction's own
+    round-off (R's eigenvalues are known to about ``n eps``). With ``L = Q S`` (``Q``
+    orthonormal), ``c = Q^T r`` and ``rho = |r - Q c|``, ``R`` and ``r`` in the basis
+    ``[Q, (r - Q c) / rho]`` are ``diag(S S^T, 0)`` and ``[c, rho]``: a bordered matrix of
+    size k + 2 to reduce.
+    """
+    n = r.size
+    c, piv, k, _ = lapack.dpstrf(R.T, lower=0, tol=PIVOT_TOL / n, overwrite_a=1)
+    if k > LOWRANK * n:
+        return None
+    L = c.T[:, :k]  # rows in pivot order; clear the upper triangle dpstrf leaves as it was
+    L[np.triu_indices(k, 1)] = 0.0
+    qr, tau, _, _ = lapack.dgeqrf(L, overwrite_a=1)
+    cq = lapack.dormqr("L", "T", qr, tau, r[piv - 1][:, None], 1)[0][:, 0]
+    small = np.zeros((k + 2, k + 2))
+    small[1:-1, 1:-1] = lapack.dlauum(qr[:k], lower=0)[0].T  # S S^T, lower triangle
+    small[1:-1, 0] = cq[:k]
+    small[-1, 0] = math.sqrt(float(cq[k:] @ cq[k:]))
+    _, t, e, _, _ = lapack.dsytrd(small, lower=1)
+    return t[1:], e[1:]
+
+
+def _correlation(kind: type, d: np.ndarray, length_scale: float) -> np.ndarray:
+    """Correlation matrix (n, n) at differences ``d`` (n, n), a new array."""
+    return kind(length_scale, 1.0).correlation(d, False)[0]
 
 
 def _sum_log(a: np.ndarray, axis: int) -> np.ndarray:
