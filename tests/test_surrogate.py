@@ -80,6 +80,22 @@ def test_dense_table_is_the_exact_likelihood_on_a_grid(white):
     assert checked >= 3
 
 
+def test_dense_table_rows_reach_further_towards_longer_length_scales():
+    x, r = grid_data(0.0)
+    scan = surrogate._scan(SquaredExp(), x, r, np.array([-np.inf, np.inf]))
+    _, ll, _, _ = surrogate._dense_table(scan, np.zeros((N, 0)))
+    prof = scan.table.max(axis=1)  # the profiled rows, known noise ignored
+    all_ll = np.log(surrogate.RATIOS * scan.h)
+    best = int(np.argmax(prof))
+    first, last = np.searchsorted(all_ll, ll[0]), np.searchsorted(all_ll, ll[-1])
+    assert np.allclose(ll, all_ll[first : last + 1])
+    assert first < best < last
+    assert prof[first] >= prof[best] - surrogate._ROWS_SHORT > prof[first - 1]
+    assert prof[last] >= prof[best] - surrogate._ROWS
+    assert last == all_ll.size - 1 or prof[last + 1] < prof[best] - surrogate._ROWS
+    assert prof[best] - prof[last] > surrogate._ROWS_SHORT  # wider on the long side
+
+
 def test_dense_table_without_known_noise_is_the_plain_likelihood():
     x, r = grid_data(0.0)
     scan = surrogate._scan(SquaredExp(), x, r, np.array([-np.inf, np.inf]))
