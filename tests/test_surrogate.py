@@ -252,3 +252,15 @@ def test_lowrank_rows_agree_with_the_dense_reduction_within_the_dropped_part(mon
     ok = np.isfinite(dense)
     assert np.all((np.abs(fast - dense) <= bound)[ok])
     assert np.max(np.abs(fast - dense)[:, g >= 1e-6]) < 1e-6
+
+
+def test_a_scan_is_shared_by_fits_of_the_same_data_and_read_only():
+    x, r = grid_data(0.02)
+    b = np.array([-6.0, 3.0])
+    first = surrogate._scan(SquaredExp(), x, r, b)
+    assert surrogate._scan(SquaredExp(), x.copy(), r.copy(), b.copy()) is first
+    assert not first.table.flags.writeable and not first.z.flags.writeable
+    other = surrogate._scan(SquaredExp(), x, 2.0 * r, b)
+    assert other is not first
+    np.testing.assert_allclose(other.quad, 4.0 * first.quad, rtol=1e-12)
+    assert surrogate._scan(Matern52(), x, r, b) is not first

@@ -125,16 +125,19 @@ class _Scan:
 #: The last scan, by its inputs: the homoscedastic and the bayes fit of a stage (same
 #: readings, same targets) share it.
 _LAST_SCAN: dict[tuple, _Scan | None] = {}
+_MISSING = object()
 
 
 def _scan(kernel: Kernel, x: np.ndarray, r: np.ndarray, log_ls: np.ndarray) -> _Scan | None:
     if type(kernel) not in _KERNELS:
         return None
     key = (type(kernel), x.tobytes(), r.tobytes(), np.asarray(log_ls, float).tobytes())
-    if key not in _LAST_SCAN:
+    scan = _LAST_SCAN.get(key, _MISSING)
+    if scan is _MISSING:  # (threads at worst compute a scan twice)
+        scan = _new_scan(kernel, x, r, log_ls)
         _LAST_SCAN.clear()
-        _LAST_SCAN[key] = _new_scan(kernel, x, r, log_ls)
-    return _LAST_SCAN[key]
+        _LAST_SCAN[key] = scan
+    return scan
 
 
 def _new_scan(kernel: Kernel, x: np.ndarray, r: np.ndarray, log_ls: np.ndarray) -> _Scan | None:
