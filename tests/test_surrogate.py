@@ -264,3 +264,23 @@ def test_a_scan_is_shared_by_fits_of_the_same_data_and_read_only():
     assert other is not first
     np.testing.assert_allclose(other.quad, 4.0 * first.quad, rtol=1e-12)
     assert surrogate._scan(Matern52(), x, r, b) is not first
+
+
+@pytest.mark.parametrize("kind", [SquaredExp, Matern52])
+@pytest.mark.parametrize("n", [3, 4, 9])
+def test_tiny_sets_and_long_length_scales_match_the_dense_formula(kind, n):
+    # rank-one rows (k + 2 = 3) and padding far beyond n: the table still equals the
+    # profiled likelihood computed from a dense factorisation
+    x = np.linspace(0.0, 1.0, n) + 0.01 * np.sin(np.arange(n))
+    r = 0.01 * np.cos(3.0 * x) + 1e-3 * np.arange(n)
+    log_ls = np.log([0.05, 1.0, 30.0, 1e3])
+    table = surrogate._tridiagonal_table(kind, np.subtract.outer(x, x), r, log_ls)
+    for i, ll in enumerate(log_ls):
+        for j in range(0, surrogate.GAINS.size, 6):
+            A = kind(np.exp(ll), 1.0)(x) + surrogate.GAINS[j] * np.eye(n)
+            if np.linalg.cond(A) > 1e6:
+                continue
+            quad = r @ np.linalg.solve(A, r)
+            expected = -0.5 * n * np.log(quad) - 0.5 * np.linalg.slogdet(A)[1]
+            bound = 0.5 * (n + 1) * surrogate.PIVOT_TOL / surrogate.GAINS[j] + 1e-9
+            assert abs(table[i, j] - expected) <= bound
