@@ -268,13 +268,24 @@ def test_a_scan_is_shared_by_fits_of_the_same_data_and_read_only():
 
 @pytest.mark.parametrize("kind", [SquaredExp, Matern52])
 @pytest.mark.parametrize("n", [3, 4, 9])
-def test_tiny_sets_and_long_length_scales_match_the_dense_formula(kind, n):
-    # rank-one rows (k + 2 = 3) and padding far beyond n: the table still equals the
-    # profiled likelihood computed from a dense factorisation
+def test_tiny_sets_and_long_length_scales_match_the_dense_formula(kind, n, monkeypatch):
+    # low-rank rows down to rank one (k + 2 = 3) and padding beyond n: the table still
+    # equals the profiled likelihood computed from a dense factorisation
     x = np.linspace(0.0, 1.0, n) + 0.01 * np.sin(np.arange(n))
     r = 0.01 * np.cos(3.0 * x) + 1e-3 * np.arange(n)
-    log_ls = np.log([0.05, 1.0, 30.0, 1e3])
+    log_ls = np.log([0.05, 1.0, 30.0, 1e8])
+    ranks = []
+    lowrank = surrogate._lowrank_reduction
+
+    def spy(R, r):
+        out = lowrank(R, r)
+        ranks.append(None if out is None else out[0].size - 1)
+        return out
+
+    monkeypatch.setattr(surrogate, "_lowrank_reduction", spy)
     table = surrogate._tridiagonal_table(kind, np.subtract.outer(x, x), r, log_ls)
+    assert ranks[0] == 1  # the longest length scale: R is all ones to round-off
+    checked = 0
     for i, ll in enumerate(log_ls):
         for j in range(0, surrogate.GAINS.size, 6):
             A = kind(np.exp(ll), 1.0)(x) + surrogate.GAINS[j] * np.eye(n)
@@ -284,3 +295,5 @@ def test_tiny_sets_and_long_length_scales_match_the_dense_formula(kind, n):
             expected = -0.5 * n * np.log(quad) - 0.5 * np.linalg.slogdet(A)[1]
             bound = 0.5 * (n + 1) * surrogate.PIVOT_TOL / surrogate.GAINS[j] + 1e-9
             assert abs(table[i, j] - expected) <= bound
+            checked += int(i == 3)  # cells of the rank-one row
+    assert checked >= 2
