@@ -114,27 +114,55 @@ def test_inverse_round_trip(trial):
     assert_allclose(m.inverse(r), _bisect_inverse(m, r), rtol=0, atol=1e-12)
 
 
+def test_on_grid_equals_direct_evaluation(trial):
+    for m in (trial.device_map, trial.testbed_map):
+        for n, lo, hi in ((2001, 0.0, 1.0), (513, 0.0, 1.0), (7, 0.2, 0.9), (2, 0.0, 1.0)):
+            y, v = m.on_grid(n, lo, hi)
+            assert_allclose(y, np.linspace(lo, hi, n), rtol=0, atol=0)
+            assert_allclose(v, m(y), rtol=0, atol=1e-15)
+
+
 def test_cost_j_of_truth_is_zero(trial):
     assert cost_j(trial, correct=trial.truth) < 1e-12
     grid, truth = simulation.j_reference(trial)
     assert grid.size >= 2000
-    assert_allclose(grid, np.linspace(*trial.device_range, grid.size), rtol=1e-15)
+    assert_allclose(truth, np.linspace(0.0, 1.0, grid.size), rtol=0, atol=0)
+    assert_allclose(grid, trial.device_map(truth), rtol=0, atol=1e-15)
+    assert_allclose((grid[0], grid[-1]), trial.device_range, rtol=0, atol=1e-15)
+    assert np.all(np.diff(grid) > 0)
     assert_allclose(truth, _bisect_inverse(trial.device_map, grid), rtol=0, atol=1e-12)
     assert cost_j(trial, corrected=truth) < 1e-12
     assert cost_j(trial, corrected=grid, reference=(grid, truth)) == cost_j(trial, corrected=grid)
 
 
-def test_cost_j_of_identity(trial):
+def _rms_by_quadrature(trial, correct) -> float:
+    """J by adaptive quadrature over true positions (y1 = g(y*), dy1 = g'(y*) dy*)."""
+    from scipy.integrate import quad
+
+    m = trial.device_map
     lo, hi = trial.device_range
-    grid = np.linspace(lo, hi, 2001)
-    err2 = (grid - _bisect_inverse(trial.device_map, grid)) ** 2
-    h = grid[1] - grid[0]
-    rms = np.sqrt(h * (err2.sum() - 0.5 * (err2[0] + err2[-1])) / (hi - lo))
+
+    def f(y: float) -> float:
+        r = m(np.array([y]))
+        return float((correct(r)[0] - y) ** 2 * m.slope(np.array([y]))[0])
+
+    val, _ = quad(f, 0.0, 1.0, limit=500, epsabs=1e-16, epsrel=1e-12)
+    return float(np.sqrt(val / (hi - lo)))
+
+
+def test_cost_j_of_identity(trial):
+    rms = _rms_by_quadrature(trial, lambda r: r)
     assert rms > 1e-3  # the uncorrected device is visibly wrong
-    assert cost_j(trial, correct=lambda r: r) == pytest.approx(rms, rel=1e-9)
-    assert cost_j(trial, corrected=grid) == pytest.approx(rms, rel=1e-9)
+    # the trapezoid rule on 2001 nodes is exact to O(h^2): 4e-7 relative here
+    assert cost_j(trial, correct=lambda r: r) == pytest.approx(rms, rel=2e-6)
+    grid, _ = simulation.j_reference(trial)
+    assert cost_j(trial, corrected=grid) == pytest.approx(rms, rel=2e-6)
     # a constant error of 1e-4 gives J = 1e-4
     assert cost_j(trial, correct=lambda r: trial.truth(r) + 1e-4) == pytest.approx(1e-4, rel=1e-9)
+    # a smooth estimate: J against the quadrature of the same integral
+    smooth = lambda r: trial.truth(r) + 1e-4 * np.sin(7.0 * r)  # noqa: E731
+    expected = _rms_by_quadrature(trial, smooth)
+    assert cost_j(trial, correct=smooth) == pytest.approx(expected, rel=2e-6)
 
 
 def test_not_increasing_map_detected():

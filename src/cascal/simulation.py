@@ -8,6 +8,7 @@ positions equally spaced in the device reading. Positions are in m on ``[0, 1]``
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,6 +51,22 @@ class SensorMap:
         wy = np.multiply.outer(np.asarray(y, dtype=float), self.w)
         return y + np.sin(wy) @ self.a + np.cos(wy) @ self.b
 
+    def on_grid(self, n: int, lo: float = 0.0, hi: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` equally spaced true positions on ``[lo, hi]`` and their noise-free readings,
+        each (n,), m.
+
+        No sine or cosine per position: with ``j = q a + b``, ``exp(i w y_j)`` is the
+        product of ``exp(i w (lo + q a h))`` and ``exp(i w b h)``, two tables of about
+        ``sqrt(n)`` rows (each product adds a rounding of 1e-16 relative to the amplitude).
+        """
+        y = np.linspace(lo, hi, n)
+        h = (hi - lo) / max(n - 1, 1)
+        q = math.isqrt(max(n - 1, 0)) + 1
+        coarse = np.exp(1j * np.multiply.outer(lo + q * h * np.arange(-(-n // q)), self.w))
+        fine = np.exp(1j * np.multiply.outer(h * np.arange(q), self.w))
+        e = (coarse[:, None, :] * fine[None, :, :]).reshape(-1, self.w.size)[:n]
+        return y, y + (e @ (self.b - 1j * self.a)).real  # Re(e (b - i a)) = a sin + b cos
+
     def slope(self, y: np.ndarray) -> np.ndarray:
         """d reading / d y* at ``y`` (m,), dimensionless."""
         wy = np.multiply.outer(np.asarray(y, dtype=float), self.w)
@@ -78,8 +95,8 @@ class SensorMap:
         increasing on ``[lo, hi]``.
         """
         r = np.asarray(readings, dtype=float)
-        table = np.linspace(lo, hi, 513)
-        y = np.interp(r, self(table), table)
+        table, values = self.on_grid(513, lo, hi)
+        y = np.interp(r, values, table)
         for _ in range(30):
             value, slope = self.value_and_slope(y)
             y_new = np.clip(y - (value - r) / slope, lo, hi)
@@ -177,7 +194,7 @@ def cost_j(
 
     Args:
         trial: The simulated trial (its true device map).
-        corrected: Estimated true positions on the grid of :func:`j_reference`, (2001,); or
+        corrected: Estimated true positions at the readings of :func:`j_reference`, (2001,); or
         correct: A callable device readings -> estimated true positions.
         reference: ``j_reference(trial)``, when already computed (it costs an inversion).
     """
@@ -188,7 +205,12 @@ def cost_j(
 
 
 def j_reference(trial: Trial) -> tuple[np.ndarray, np.ndarray]:
-    """Grid of device readings for J, shape (2001,), and the true positions there, m."""
-    lo, hi = trial.device_range
-    grid = np.linspace(lo, hi, J_GRID)
-    return grid, trial.truth(grid)
+    """Nodes of J's trapezoid rule: device readings (2001,), increasing from the device
+    range's start to its end, and the true positions there (2001,), m.
+
+    The nodes are the noise-free readings at 2001 equally spaced true positions on [0, 1],
+    so the truth there is exact, with no inversion; the map's slope (0.56 to 1.45 in 20 000
+    draws) keeps their spacing within a factor of 3 of uniform.
+    """
+    truth, grid = trial.device_map.on_grid(J_GRID)
+    return grid, truth
