@@ -84,6 +84,43 @@ def test_deferred_derivatives_give_the_same_run_and_are_skipped_on_rejected_step
     assert calls["derivatives"] < calls["value"]  # at least one step was rejected
 
 
+def test_last_full_step_is_taken_on_its_value_alone():
+    # Near the top a full Newton step squares the decrement: the run ends at the point it
+    # steps to, paying for its value but not its derivatives, and that point is the top
+    # to well within the tolerance.
+    top = np.array([0.4, -0.2])
+
+    def vgh(t):
+        u = t - top
+        w = 1.0 + u @ u
+        f = -np.log(w) - 0.1 * float(u @ u) - 0.05 * u[0] ** 3
+        g = -2.0 * u / w - 0.2 * u - np.array([0.15 * u[0] ** 2, 0.0])
+        H = -2.0 * np.eye(2) / w + 4.0 * np.outer(u, u) / w**2 - 0.2 * np.eye(2)
+        H[0, 0] -= 0.3 * u[0]
+        return f, g, H
+
+    calls = {"value": 0, "derivatives": 0}
+
+    def staged(t):
+        calls["value"] += 1
+        f, g, H = vgh(t)
+
+        def derivatives():
+            calls["derivatives"] += 1
+            return g, H
+
+        return f, derivatives
+
+    bounds = np.array([[-5.0, 5.0], [-5.0, 5.0]])
+    s = newton_maximize(staged, top + np.array([0.3, 0.2]), bounds)
+    assert s.converged and s.n_evals == calls["value"]
+    assert calls["derivatives"] == calls["value"] - 1
+    _, g, H = vgh(s.theta)
+    assert float(g @ np.linalg.solve(-H, g)) < 2e-11  # the decrement at the end
+    np.testing.assert_allclose(s.theta, top, atol=1e-6)
+    assert s.value == vgh(s.theta)[0]
+
+
 def test_objective_value_and_derivatives_match_value_grad_hess():
     rng = np.random.default_rng(3)
     x = np.sort(rng.uniform(0, 1, 30))
