@@ -297,3 +297,12 @@ def test_tiny_sets_and_long_length_scales_match_the_dense_formula(kind, n, monke
             assert abs(table[i, j] - expected) <= bound
             checked += int(i == 3)  # cells of the rank-one row
     assert checked >= 2
+
+
+@pytest.mark.parametrize("k", [1, 5, 8, 13, 16, 100])
+def test_sum_log_equals_the_sum_of_logs_along_any_axis(k):
+    rng = np.random.default_rng(k)
+    a = np.exp(rng.uniform(-3.0, 3.0, (k, 3, 4)))
+    for axis, b in ((0, a), (-1, np.moveaxis(a, 0, -1).copy()), (1, np.moveaxis(a, 0, 1))):
+        expected = np.log(b).sum(axis=axis)
+        np.testing.assert_allclose(surrogate._sum_log(b, axis), expected, rtol=1e-13)

@@ -69,6 +69,9 @@ _ROWS_SHORT = 4.0
 #: Dense noise: log offsets of the signal and noise variances around the row's profiled ones.
 _SIGNAL = np.linspace(-3.0, 3.0, 7)
 _NOISE = np.linspace(-4.0, 2.0, 7)
+#: A cell's ``D / noise`` depends on its two offsets' difference alone: 13 distinct ones
+#: (``_DIFF``, exact: both grids are integers) for the 49 cells (``_CELL`` indexes them).
+_DIFF, _CELL = np.unique(np.subtract.outer(_SIGNAL, _NOISE).ravel(), return_inverse=True)
 _KERNELS = (SquaredExp, Matern32, Matern52)
 
 
@@ -313,11 +316,14 @@ def _sum_log(a: np.ndarray, axis: int) -> np.ndarray:
     """``log(a).sum(axis)`` with 8 times fewer logarithms: the logs of products of 8.
     For entries between about 1e-30 and 1e30, so that no product over- or underflows."""
     axis %= a.ndim
-    pad = -a.shape[axis] % 8
-    if pad:
-        a = np.concatenate([a, np.ones((*a.shape[:axis], pad, *a.shape[axis + 1 :]))], axis)
-    groups = a.reshape(*a.shape[:axis], -1, 8, *a.shape[axis + 1 :])
-    return np.log(groups.prod(axis=axis + 1)).sum(axis=axis)
+    k = a.shape[axis]
+    head = k - k % 8
+    before = (slice(None),) * axis
+    groups = a[(*before, slice(0, head))].reshape(*a.shape[:axis], -1, 8, *a.shape[axis + 1 :])
+    out = np.log(groups.prod(axis=axis + 1)).sum(axis=axis)
+    if head < k:
+        out += np.log(a[(*before, slice(head, k))].prod(axis=axis))
+    return out
 
 
 def dense_starts(
@@ -369,28 +375,30 @@ def _dense_table(scan: _Scan, factor: np.ndarray) -> tuple[np.ndarray, ...] | No
     Ut = scan.basis.QT.reshape(RATIOS.size, n, n)[sel] @ factor[scan.order]  # (s, n, m)
     s, m = Ut.shape[0], Ut.shape[2]
     log_sf = np.log(scan.quad[rows, col[rows]] / n)
+    log_g = np.log(GAINS[col[rows]])
     signal = log_sf[:, None] + _SIGNAL
-    noise = (log_sf + np.log(GAINS[col[rows]]))[:, None] + _NOISE
-    cells = _SIGNAL.size * _NOISE.size
-    # D in units of the row's profiled variance, so that products of 8 stay in range
-    D = (
-        np.exp(_SIGNAL)[None, :, None, None] * scan.basis.lam[sel][:, None, None, :]
-        + np.exp(noise - log_sf[:, None])[:, None, :, None]
-    ).reshape(s, cells, n)
-    inv = 1.0 / (D * np.exp(log_sf)[:, None, None])
+    noise = (log_sf + log_g)[:, None] + _NOISE
+    # D = variance lam + noise = noise E with E = 1 + exp(signal - noise) lam: E (s, u, n)
+    # per distinct offset difference u; a cell's D^-1 is E^-1 / noise, its log det D
+    # n log noise + sum log E.
+    E = np.exp(_DIFF[None, :] - log_g[:, None])[:, :, None] * scan.basis.lam[sel][:, None, :]
+    E += 1.0
+    cell_noise = np.broadcast_to(noise[:, None, :], (s, _SIGNAL.size, _NOISE.size))
+    cell_noise = cell_noise.reshape(s, -1)  # (s, cells): signal offsets major, as _CELL
     # [U~, z]^T D^-1 [U~, z] holds C - I, w = U~^T D^-1 z and z^T D^-1 z; its Cholesky
     # factor (with I added to C) ends in sqrt(z^T D^-1 z - w^T C^-1 w) = sqrt(r^T K^-1 r)
     Uz = np.concatenate([Ut, scan.z[sel][:, :, None]], axis=2)  # (s, n, m + 1)
     lo, hi = np.tril_indices(m + 1)  # NumPy's Cholesky reads the lower triangle only
-    A = np.zeros((s, cells, m + 1, m + 1))
-    A[..., lo, hi] = inv @ (Uz[:, :, lo] * Uz[:, :, hi])
+    G = np.reciprocal(E) @ (Uz[:, :, lo] * Uz[:, :, hi])  # (s, u, pairs)
+    A = np.zeros((s, _CELL.size, m + 1, m + 1))
+    A[..., lo, hi] = G[:, _CELL] * np.exp(-cell_noise)[:, :, None]
     A[..., np.arange(m), np.arange(m)] += 1.0
     try:
         L = np.linalg.cholesky(A)
     except np.linalg.LinAlgError:  # r^T K^-1 r lost to round-off in some cell
         return None
     piv = np.diagonal(L, axis1=-2, axis2=-1)
-    logdet = n * log_sf[:, None] + _sum_log(D, axis=-1) + 2.0 * np.log(piv[..., :m]).sum(axis=-1)
+    logdet = n * cell_noise + _sum_log(E, axis=-1)[:, _CELL] + 2.0 * np.log(piv[..., :m]).sum(-1)
     table = -0.5 * np.square(piv[..., m]) - 0.5 * logdet
     table = table.reshape(s, _SIGNAL.size, _NOISE.size)
     table[~np.isfinite(prof[sel])] = -np.inf
