@@ -205,6 +205,22 @@ def test_cascade_deterministic(trial):
     assert np.array_equal(a.correct(r), b.correct(r))
 
 
+def test_with_method_and_a_shared_first_stage_give_the_fits_of_fresh_cascades(trial, bayes, homo):
+    chain = Cascade([trial.d2, trial.d1], "lut", n_restarts=3, seed=0)
+    stage0 = Cascade([trial.d2], "bayes", n_restarts=3, seed=0).fit().models[0]
+    assert stage0.log_marginal_likelihood == bayes.models[0].log_marginal_likelihood
+    for _ in range(2):  # the second round takes the first stage's posterior from the cache
+        for fresh in (bayes, homo):
+            reused = chain.with_method(fresh.method).fit(first=stage0)
+            assert reused.method == fresh.method
+            np.testing.assert_array_equal(reused.stages[1].y, fresh.stages[1].y)
+            lml = reused.models[1].log_marginal_likelihood
+            assert lml == fresh.models[1].log_marginal_likelihood
+    assert chain.method == "lut" and chain.fit().method == "lut"
+    with pytest.raises(CascalError, match="method"):
+        chain.with_method("spline")
+
+
 def test_paper_ordering_of_methods():
     """Seeded: median J of Algorithm 1 <= Alternative 1 < Alternative 2 (paper, Fig. 5).
 

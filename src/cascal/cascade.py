@@ -12,6 +12,7 @@ whose correction comes from stage k - 1 evaluated at the upper sensor's readings
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -19,7 +20,7 @@ import numpy as np
 
 from .baselines import OffsetTable, fit_table
 from .errors import CascalError, InputError
-from .gp import FittedGP, fit_gp
+from .gp import FittedGP, Posterior, fit_gp
 from .kernels import Kernel
 from .noise import Dense, Noise, as_noise
 from .validation import as_positions, check_increasing, check_pair
@@ -135,6 +136,14 @@ class Cascade:
             for upper, lower in zip(self.stages, self.stages[1:], strict=False):
                 _check_inside(lower, upper)
 
+    def with_method(self, method: str) -> Cascade:
+        """The same (already checked) stages and settings with another ``method``."""
+        if method not in METHODS:
+            raise InputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+        other = copy.copy(self)
+        other.method = method
+        return other
+
     def fit(self, first: FittedGP | None = None) -> FittedCascade:
         """Fit every stage from the reference end down; returns a :class:`FittedCascade`.
 
@@ -158,7 +167,7 @@ class Cascade:
             if k == 0:
                 targets, noise = stage.y, stage.noise
             else:
-                post = models[-1].posterior(stage.y)
+                post = _posterior(models[-1], stage.y, shared=k == 1 and first is not None)
                 targets = post.mean
                 if self.method == "bayes":
                     prior = float(np.max(models[-1].kernel.diag(stage.y)))
@@ -189,6 +198,26 @@ class Cascade:
             tables.append(fit_table(stage.x, targets, (f"{stage.name} x", f"{stage.name} y")))
             used.append(Stage(stage.x, targets, stage.noise, stage.name))
         return FittedCascade("lut", tuple(tables), tuple(used))
+
+
+#: The last posterior of a given first stage: fits of several methods on one shared
+#: first stage (``fit(first=...)``) need it at the same readings. Holding the model keeps
+#: its identity unique while cached.
+_LAST_POSTERIOR: list[tuple[FittedGP, bytes, Posterior]] = []
+
+
+def _posterior(model: FittedGP, y: np.ndarray, shared: bool) -> Posterior:
+    if not shared:
+        return model.posterior(y)
+    key = y.tobytes()
+    for cached, cached_key, post in list(_LAST_POSTERIOR):
+        if cached is model and cached_key == key:
+            return post
+    post = model.posterior(y)
+    post.mean.flags.writeable = False
+    post.cov.flags.writeable = False
+    _LAST_POSTERIOR[:] = [(model, key, post)]
+    return post
 
 
 def _propagated(cov: np.ndarray, stage: Stage, prior_variance: float) -> Noise:

@@ -98,16 +98,17 @@ def _run_trial(config: StudyConfig, index: int) -> TrialResult:
     fits: dict[str, dict[str, float]] = {}
     settings = {"kernel": config.kernel, "n_restarts": config.n_restarts, "seed": fit_seed}
     stage0 = None
+    t = time.perf_counter()
+    chain = Cascade([trial.d2, trial.d1], "bayes", **settings)
     if any(m != "lut" for m in config.methods):
         # Stage A is the same GP for bayes and homoscedastic (stage seeds are spawned per
         # stage, so a one-stage cascade fits it exactly as the two-stage one would): fit once.
-        t = time.perf_counter()
-        stage0 = Cascade([trial.d2], "bayes", **settings).fit().models[0]
+        stage0 = Cascade(chain.stages[:1], "bayes", **settings).fit().models[0]
         seconds["stage_a"] = time.perf_counter() - t
         fits["stage0"] = _fit_record(stage0)
     for method in config.methods:
         t = time.perf_counter()
-        cascade = Cascade([trial.d2, trial.d1], method, **settings)
+        cascade = chain.with_method(method)
         fitted = cascade.fit() if method == "lut" else cascade.fit(first=stage0)
         if method != "lut":
             fits[f"{method}/stage1"] = _fit_record(fitted.models[1])
