@@ -136,9 +136,10 @@ class _Scaled(Kernel):
 
     def _eval(self, d: np.ndarray, grad: bool) -> tuple[np.ndarray, np.ndarray | None]:
         rho, drho = self.correlation(d, grad)
+        if not grad:  # rho is a new array
+            rho *= self.variance
+            return rho, None
         K = self.variance * rho
-        if not grad:
-            return K, None
         return K, np.stack([self.variance * drho, K])
 
 
@@ -148,6 +149,9 @@ class SquaredExp(_Scaled):
 
     def correlation(self, d, grad):
         s = np.square(d)
+        if not grad:  # one temporary
+            s *= -0.5 / (self.length_scale * self.length_scale)
+            return np.exp(s, out=s), None
         s *= 1.0 / (self.length_scale * self.length_scale)
         rho = np.multiply(s, -0.5)
         np.exp(rho, out=rho)
