@@ -306,3 +306,18 @@ def test_sum_log_equals_the_sum_of_logs_along_any_axis(k):
     for axis, b in ((0, a), (-1, np.moveaxis(a, 0, -1).copy()), (1, np.moveaxis(a, 0, 1))):
         expected = np.log(b).sum(axis=axis)
         np.testing.assert_allclose(surrogate._sum_log(b, axis), expected, rtol=1e-13)
+
+
+@pytest.mark.parametrize("n", [2, 7, 8, 31])
+@pytest.mark.parametrize("kind", [SquaredExp, Matern32])
+def test_half_bases_diagonalise_the_correlation(kind, n):
+    basis = surrogate._basis(kind, n)
+    u = np.arange(n, dtype=float)
+    for i in (0, 30, 60):
+        R = kind(float(surrogate.RATIOS[i]), 1.0)(u)
+        Qt = basis.project(np.eye(n), slice(i, i + 1))[0]  # (n, n): Q^T
+        np.testing.assert_allclose(Qt @ Qt.T, np.eye(n), atol=1e-13)
+        np.testing.assert_allclose(Qt @ R @ Qt.T, np.diag(basis.lam[i]), atol=1e-12)
+        np.testing.assert_allclose(
+            np.sort(basis.lam[i]), np.clip(np.linalg.eigvalsh(R), 0, None), atol=1e-12
+        )

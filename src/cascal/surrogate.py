@@ -7,7 +7,8 @@ One decomposition of ``R`` per length scale gives a whole row over ``g``:
 
 * On an equally spaced grid ``x_k = x_0 + k h``, ``R`` of a stationary kernel depends on
   ``l / h`` alone, so its eigenvectors ``Q`` and eigenvalues ``lam`` are computed once per
-  kernel, size and ratio, and cached; with ``z = Q^T r`` a row is
+  kernel, size and ratio (in symmetric and antisymmetric halves), and cached; with
+  ``z = Q^T r`` a row is
   ``-n/2 log(sum z^2 / (lam + g)) - 1/2 sum log(lam + g)``, one matrix-vector product.
   A known dense noise ``Sigma = U U^T`` (a low-rank factor) enters by the Woodbury
   identity, at the cost of one small m x m factorisation per table cell.
@@ -77,28 +78,58 @@ _KERNELS = (SquaredExp, Matern32, Matern52)
 
 @dataclass(frozen=True, slots=True)
 class _Basis:
-    """Eigenbases of the unit-spacing correlation at every ratio: ``QT`` (r n, n) stacks
-    ``Q^T``, ``lam`` (r, n) the eigenvalues (round-off negatives clipped), ``W`` (r, n, c)
-    holds ``1 / (lam + g)`` and ``logdet`` (r, c) ``sum log(lam + g)``."""
+    """Eigenbases of the unit-spacing correlation at every ratio, in halves.
 
-    QT: np.ndarray
+    That correlation is symmetric Toeplitz, so it commutes with reversal: its eigenvectors
+    are symmetric or antisymmetric, and :func:`_fold` gives a vector's coordinates in the
+    two subspaces. ``S`` (r, s, s) and ``A`` (r, a, a) stack the transposed eigenvectors
+    there (``s + a = n``), ``lam`` (r, n) the eigenvalues (symmetric ones first, round-off
+    negatives clipped), ``W`` (r, n, c) holds ``1 / (lam + g)`` and ``logdet`` (r, c)
+    ``sum log(lam + g)``. Half the memory and flops of a full basis."""
+
+    S: np.ndarray
+    A: np.ndarray
     lam: np.ndarray
     W: np.ndarray
     logdet: np.ndarray
+
+    def project(self, v: np.ndarray, rows: slice = slice(None)) -> np.ndarray:
+        """``Q^T v`` at the ratios ``rows``: (r, n) for ``v`` (n,), (r, n, m) for (n, m)."""
+        sym, anti = _fold(v)
+        return np.concatenate([self.S[rows] @ sym, self.A[rows] @ anti], axis=1)
+
+
+def _fold(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Coordinates of ``v`` (n, ...) in orthonormal bases of the symmetric (``(v_i +
+    v_(n-1-i)) / sqrt 2`` for ``i < n // 2``, then the middle entry if n is odd) and the
+    antisymmetric vectors (``(v_i - v_(n-1-i)) / sqrt 2``): shapes (n - n // 2, ...) and
+    (n // 2, ...)."""
+    n = v.shape[0]
+    p = n // 2
+    top, bottom = v[:p], v[::-1][:p]
+    sym = (top + bottom) * math.sqrt(0.5)
+    if n % 2:
+        sym = np.concatenate([sym, v[p : p + 1]])
+    return sym, (top - bottom) * math.sqrt(0.5)
 
 
 @lru_cache(maxsize=4)
 def _basis(kind: type, n: int) -> _Basis:
     u = np.arange(n, dtype=float)
     d = np.subtract.outer(u, u)
-    QT = np.empty((RATIOS.size, n, n))
+    Fs, Fa = _fold(np.eye(n))  # rows: the two orthonormal bases
+    p = n // 2
+    S = np.empty((RATIOS.size, n - p, n - p))
+    A = np.empty((RATIOS.size, p, p))
     lam = np.empty((RATIOS.size, n))
     for i, ratio in enumerate(RATIOS):
         rho, _ = kind(float(ratio), 1.0).correlation(d, False)
-        w, Q = np.linalg.eigh(rho)
-        lam[i], QT[i] = np.clip(w, 0.0, None), Q.T
+        for F, out, part in ((Fs, S, slice(0, n - p)), (Fa, A, slice(n - p, n))):
+            block = F @ rho @ F.T
+            w, V = np.linalg.eigh(0.5 * (block + block.T))
+            lam[i, part], out[i] = np.clip(w, 0.0, None), V.T
     shifted = lam[:, :, None] + GAINS
-    return _Basis(QT.reshape(-1, n), lam, 1.0 / shifted, np.log(shifted).sum(axis=1))
+    return _Basis(S, A, lam, 1.0 / shifted, np.log(shifted).sum(axis=1))
 
 
 def grid_spacing(x: np.ndarray) -> float | None:
@@ -150,7 +181,7 @@ def _new_scan(kernel: Kernel, x: np.ndarray, r: np.ndarray, log_ls: np.ndarray) 
     n = x.size
     order = np.argsort(x, kind="stable")
     basis = _basis(type(kernel), n)
-    z = (basis.QT @ r[order]).reshape(RATIOS.size, n)
+    z = basis.project(r[order])
     quad = np.matmul((z * z)[:, None, :], basis.W)[:, 0, :]
     with np.errstate(divide="ignore"):
         table = -0.5 * n * np.log(quad) - 0.5 * basis.logdet
@@ -372,7 +403,7 @@ def _dense_table(scan: _Scan, factor: np.ndarray) -> tuple[np.ndarray, ...] | No
     near_long = np.flatnonzero(prof[best:] >= prof[best] - _ROWS)
     sel = slice(int(near_short[0]), best + int(near_long[-1]) + 1)  # a view, no copy
     rows = np.arange(RATIOS.size)[sel]
-    Ut = scan.basis.QT.reshape(RATIOS.size, n, n)[sel] @ factor[scan.order]  # (s, n, m)
+    Ut = scan.basis.project(factor[scan.order], sel)  # (s, n, m)
     s, m = Ut.shape[0], Ut.shape[2]
     log_sf = np.log(scan.quad[rows, col[rows]] / n)
     log_g = np.log(GAINS[col[rows]])
