@@ -495,3 +495,23 @@ def test_user_bounds_on_variance_or_noise_are_respected():
     assert held.hyperparameters["noise_variance"] == pytest.approx(lo, rel=1e-9)
     capped = fit_gp(x, y, bounds={"variance": (1e-8, 1e-6)})
     assert capped.hyperparameters["variance"] <= 1e-6 * (1 + 1e-9)
+
+
+def test_single_threaded_blas_nests_and_restores_the_setting():
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from cascal.gp import single_threaded_blas
+
+    def blas_threads() -> set[int]:
+        return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+    if not blas_threads():
+        pytest.skip("no BLAS library reports its threads")
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        with single_threaded_blas():
+            assert blas_threads() == {1}
+            with single_threaded_blas():
+                assert blas_threads() == {1}
+            assert blas_threads() == {1}  # the outer context still holds the limit
+        assert blas_threads() == before

@@ -190,8 +190,9 @@ class Objective:
             T[1, 2] = sf2 * sn2 * float(np.vdot(Q2, Kinv))
             T[2, 2] = sn2 * sn2 * float(np.vdot(Kinv, Kinv))
         g = 0.5 * av - 0.5 * np.asarray(tr)
-        iu = np.triu_indices(p, 1)
-        T[iu[1], iu[0]] = T[iu]
+        T[1, 0] = T[0, 1]
+        if p == 3:
+            T[2, 0], T[2, 1] = T[0, 2], T[1, 2]
         H = 0.5 * T - VKV
         # second-derivative terms: 1/2 a^T K_ij a - 1/2 tr(Kt^-1 K_ij)
         H[0, 0] += 0.5 * sf2 * (float(a @ (r2 @ a)) - float(np.vdot(Kinv, r2)))

@@ -338,6 +338,12 @@ def _strict_upper(k: int) -> tuple[np.ndarray, np.ndarray]:
     return np.triu_indices(k, 1)
 
 
+@lru_cache(maxsize=64)
+def _lower(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the lower triangle of a k x k matrix, diagonal included (cached)."""
+    return np.tril_indices(k)
+
+
 def _correlation(kind: type, d: np.ndarray, length_scale: float) -> np.ndarray:
     """Correlation matrix (n, n) at differences ``d`` (n, n), a new array."""
     return kind(length_scale, 1.0).correlation(d, False)[0]
@@ -414,12 +420,11 @@ def _dense_table(scan: _Scan, factor: np.ndarray) -> tuple[np.ndarray, ...] | No
     # n log noise + sum log E.
     E = np.exp(_DIFF[None, :] - log_g[:, None])[:, :, None] * scan.basis.lam[sel][:, None, :]
     E += 1.0
-    cell_noise = np.broadcast_to(noise[:, None, :], (s, _SIGNAL.size, _NOISE.size))
-    cell_noise = cell_noise.reshape(s, -1)  # (s, cells): signal offsets major, as _CELL
+    cell_noise = np.tile(noise, _SIGNAL.size)  # (s, cells): signal offsets major, as _CELL
     # [U~, z]^T D^-1 [U~, z] holds C - I, w = U~^T D^-1 z and z^T D^-1 z; its Cholesky
     # factor (with I added to C) ends in sqrt(z^T D^-1 z - w^T C^-1 w) = sqrt(r^T K^-1 r)
     Uz = np.concatenate([Ut, scan.z[sel][:, :, None]], axis=2)  # (s, n, m + 1)
-    lo, hi = np.tril_indices(m + 1)  # NumPy's Cholesky reads the lower triangle only
+    lo, hi = _lower(m + 1)  # NumPy's Cholesky reads the lower triangle only
     G = np.reciprocal(E) @ (Uz[:, :, lo] * Uz[:, :, hi])  # (s, u, pairs)
     A = np.zeros((s, _CELL.size, m + 1, m + 1))
     A[..., lo, hi] = G[:, _CELL] * np.exp(-cell_noise)[:, :, None]
