@@ -58,6 +58,7 @@ def _fit_and_noise(form, data, vec, dense):
 
 
 FORMS = ["learned", "vector", "vector+learned", "dense"]
+EPS = np.finfo(float).eps
 XS = np.linspace(-0.2, 1.2, 37)
 
 
@@ -87,6 +88,36 @@ def test_posterior_against_dense_formula(form, data, vec, dense):
     assert_allclose(fit.alpha, np.linalg.solve(Kt, y - x), rtol=1e-9)
     assert_allclose(fit.L @ fit.L.T, Kt, rtol=1e-12, atol=1e-20)
     assert fit.optimization is None
+
+
+@pytest.mark.parametrize("form", FORMS)
+def test_posterior_factor_against_dense_formula(form, data, vec, dense):
+    x, y = data
+    fit, Nmat = _fit_and_noise(form, data, vec, dense)
+    mean, cov = dense_posterior(
+        se(x, x, L0, V0), se(XS, x, L0, V0), se(XS, XS, L0, V0), Nmat, y - x, XS
+    )
+    got_mean, U = fit.posterior_factor(XS)
+    assert_allclose(got_mean, fit.predict(XS), rtol=0, atol=0)
+    assert_allclose(got_mean, mean, rtol=1e-11, atol=1e-13)
+    assert U.shape[0] == XS.size and 0 < U.shape[1] < XS.size + x.size
+    # equal to the dense formula's own round-off, which scales with the prior variance
+    assert_allclose(U @ U.T, cov, rtol=0, atol=1e-12 * V0)
+    assert_allclose(U @ U.T, fit.predict(XS, return_cov=True)[1], rtol=0, atol=1e3 * EPS * V0)
+
+
+@pytest.mark.parametrize("kernel", ["matern32", "matern52", "periodic"])
+def test_posterior_factor_of_other_kernels(kernel, data):
+    x, y = data
+    hp = {"length_scale": 0.3, "variance": V0, "noise_variance": SN0}
+    fit = fit_gp(
+        x, y, kernel=kernel, hyperparameters=hp, period=1.3 if kernel == "periodic" else None
+    )
+    mean, U = fit.posterior_factor(XS)
+    expected_mean, cov = fit.predict(XS, return_cov=True)
+    assert_allclose(mean, expected_mean, rtol=0, atol=0)
+    assert_allclose(U @ U.T, cov, rtol=0, atol=1e3 * EPS * V0)
+    assert np.linalg.eigvalsh(U @ U.T).min() > -1e3 * EPS * V0
 
 
 @pytest.mark.parametrize("form", FORMS)

@@ -175,3 +175,27 @@ def test_as_noise(C):
 def test_as_noise_shape_errors(spec, pattern):
     with pytest.raises(InputError, match=pattern):
         as_noise(spec, N)
+
+
+@pytest.mark.parametrize("k", [2, N, N + 3])
+def test_dense_from_factor(rng, k):
+    U = rng.normal(size=(N, k)) * 1e-2
+    d = Dense.from_factor(U)
+    C = U @ U.T
+    assert_allclose(d.dense(N), C, rtol=1e-14, atol=0)
+    assert_allclose(d.dense(N), d.dense(N).T, rtol=0, atol=0)
+    assert_allclose(d.diagonal(N), np.sum(U * U, axis=1), rtol=1e-14)
+    assert d.n_clipped == 0 and not d.is_diagonal
+    w = np.linalg.eigvalsh(C)
+    if k < N:
+        assert d.min_eigenvalue == 0.0
+    else:
+        assert d.min_eigenvalue == pytest.approx(w[0], rel=1e-8)
+    # the factor: the eigen-directions within 1e-4 of the largest, as from the matrix
+    F, G = d.factor(N), Dense(C).factor(N)
+    assert F.shape == G.shape
+    assert_allclose(F @ F.T, G @ G.T, rtol=0, atol=1e-12 * w[-1])
+    with pytest.raises(InputError, match="factor"):
+        Dense.from_factor(np.ones(N))
+    with pytest.raises(InputError, match="NaN"):
+        Dense.from_factor(np.where(U > 0, np.nan, U))

@@ -177,3 +177,25 @@ def test_bad_counts_and_scheduler_are_input_errors(tmp_path):
     with pytest.raises(InputError, match="cannot reach a Dask scheduler"):
         run_study(tmp_path / "c", trials=2, config=CONFIG, scheduler="notanaddress")
     assert not (tmp_path / "c").exists()  # nothing written before the cluster answered
+
+
+def test_pinned_blas_stays_single_threaded_on_every_thread():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from threadpoolctl import threadpool_info
+
+    from cascal.gp import pin_blas, single_threaded_blas
+
+    def blas_threads() -> set[int]:
+        return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+    def task(_) -> set[int]:
+        with single_threaded_blas():  # entering and leaving on several threads at once
+            pass
+        return blas_threads()
+
+    with ThreadPoolExecutor(1) as pinning:
+        pinning.submit(pin_blas).result()
+        with ThreadPoolExecutor(3) as workers:
+            seen = set().union(*workers.map(task, range(12)))
+        assert seen <= {1} and blas_threads() <= {1}

@@ -5,7 +5,8 @@ readings. Stage k maps its sensor's readings to corrected readings of the sensor
 whose correction comes from stage k - 1 evaluated at the upper sensor's readings:
 
 * ``bayes`` (Algorithm 1): targets are stage k-1's posterior mean and their noise is its
-  FULL posterior covariance (:class:`~cascal.noise.Dense`) plus a learned scalar.
+  FULL posterior covariance (:class:`~cascal.noise.Dense`, built from the factor of
+  :meth:`~cascal.gp.FittedGP.posterior_factor`) plus a learned scalar.
 * ``homoscedastic`` (Alternative 1): the same targets with a learned scalar noise only.
 * ``lut`` (Alternative 2): offset lookup tables, one per stage, no uncertainty.
 """
@@ -20,7 +21,7 @@ import numpy as np
 
 from .baselines import OffsetTable, fit_table
 from .errors import CascalError, InputError
-from .gp import FittedGP, Posterior, fit_gp
+from .gp import FittedGP, fit_gp
 from .kernels import Kernel
 from .noise import Dense, Noise, as_noise
 from .validation import as_positions, check_increasing, check_pair
@@ -166,14 +167,11 @@ class Cascade:
                 continue
             if k == 0:
                 targets, noise = stage.y, stage.noise
+            elif self.method == "bayes":
+                targets, U = models[-1].posterior_factor(stage.y)
+                noise = _propagated(U, stage)
             else:
-                post = _posterior(models[-1], stage.y, shared=k == 1 and first is not None)
-                targets = post.mean
-                if self.method == "bayes":
-                    prior = float(np.max(models[-1].kernel.diag(stage.y)))
-                    noise = _propagated(post.cov, stage, prior)
-                else:
-                    noise = stage.noise
+                targets, noise = models[-1].predict(stage.y), stage.noise
             gp = fit_gp(
                 stage.x,
                 targets,
@@ -200,29 +198,10 @@ class Cascade:
         return FittedCascade("lut", tuple(tables), tuple(used))
 
 
-#: The last posterior of a given first stage: fits of several methods on one shared
-#: first stage (``fit(first=...)``) need it at the same readings. Holding the model keeps
-#: its identity unique while cached.
-_LAST_POSTERIOR: list[tuple[FittedGP, bytes, Posterior]] = []
-
-
-def _posterior(model: FittedGP, y: np.ndarray, shared: bool) -> Posterior:
-    if not shared:
-        return model.posterior(y)
-    key = y.tobytes()
-    for cached, cached_key, post in list(_LAST_POSTERIOR):
-        if cached is model and cached_key == key:
-            return post
-    post = model.posterior(y)
-    post.mean.flags.writeable = False
-    post.cov.flags.writeable = False
-    _LAST_POSTERIOR[:] = [(model, key, post)]
-    return post
-
-
-def _propagated(cov: np.ndarray, stage: Stage, prior_variance: float) -> Noise:
-    # Round-off in K** - V^T V scales with the prior variance: accept -1e-9 of it.
-    noise = Dense(cov, atol=1e-9 * prior_variance)
+def _propagated(factor: np.ndarray, stage: Stage) -> Noise:
+    """The previous stage's posterior covariance ``factor @ factor.T`` at this stage's
+    upper readings, plus the stage's own known noise."""
+    noise = Dense.from_factor(factor)
     own = as_noise(stage.noise, len(stage.x))
     return noise if own is None else noise + own
 

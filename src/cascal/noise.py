@@ -127,6 +127,29 @@ class Dense(Noise):
         object.__setattr__(self, "n_clipped", int(np.count_nonzero(neg)))
         object.__setattr__(self, "min_eigenvalue", wmin)
 
+    @classmethod
+    def from_factor(cls, factor: np.ndarray, tol: float = 1e-8, atol: float = 0.0) -> Dense:
+        """The covariance ``U U^T`` of a factor ``U`` (n, k), positive semi-definite by
+        construction: nothing is clipped, and :meth:`factor` comes from ``U`` in O(n k^2)
+        instead of an eigendecomposition of the (n, n) matrix."""
+        U = np.array(factor, dtype=float)
+        if U.ndim != 2:
+            raise InputError(f"dense noise: expected a factor of shape (n, k), got {U.shape}")
+        if not np.all(np.isfinite(U)):
+            raise InputError("dense noise: the factor contains NaN or inf")
+        C = U @ U.T
+        C = 0.5 * (C + C.T)
+        w, V = np.linalg.eigh(U.T @ U)  # U V_i / sqrt(w_i): eigenvectors of U U^T
+        w = np.clip(w, 0.0, None)
+        out = object.__new__(cls)
+        for name, value in (("cov", C), ("tol", float(tol)), ("atol", float(atol))):
+            object.__setattr__(out, name, value)
+        object.__setattr__(out, "n_clipped", 0)
+        extra = U.shape[1] - len(U)  # U^T U has this many more (zero) eigenvalues
+        object.__setattr__(out, "min_eigenvalue", float(w[extra]) if extra >= 0 else 0.0)
+        object.__setattr__(out, "_factor", _low_rank(w, U @ V, scaled=True))
+        return out
+
     def _check(self, n: int) -> None:
         if self.cov.shape != (n, n):
             raise InputError(f"dense noise: expected shape ({n}, {n}), got {self.cov.shape}")
@@ -167,13 +190,17 @@ class NoiseSum(Noise):
         return NoiseSum((*self.parts, other))
 
 
-def _low_rank(w: np.ndarray, V: np.ndarray, rel: float = 1e-4, rank: int = 16) -> np.ndarray:
+def _low_rank(
+    w: np.ndarray, V: np.ndarray, rel: float = 1e-4, rank: int = 16, scaled: bool = False
+) -> np.ndarray:
     """Columns ``sqrt(w_i) v_i`` of the eigenpairs (ascending ``w``) within ``rel`` of the
-    largest, at most ``rank`` of them; shape (n, m)."""
+    largest, at most ``rank`` of them; shape (n, m). ``scaled``: V's columns are already
+    ``sqrt(w_i) v_i``."""
     if not w.size or not w[-1] > 0.0:
         return np.zeros((len(V), 0))
     m = min(int(np.count_nonzero(w >= rel * w[-1])), rank)
-    return V[:, w.size - m :] * np.sqrt(w[w.size - m :])
+    top = V[:, w.size - m :]
+    return top if scaled else top * np.sqrt(w[w.size - m :])
 
 
 def as_noise(spec: float | np.ndarray | Noise | None, n: int) -> Noise | None:

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .gp import pin_blas
 from .io.atomic import save_figure, write_text
 from .io.studydb import StudyDB
 from .montecarlo import StudyConfig, TrialResult, run_chunk, summarize
@@ -76,6 +77,7 @@ def run_study(
         raise InputError(f"expected at least 1 trial and 1 worker, got {trials} and {workers}")
     client = _connect(scheduler) if scheduler is not None and executor is None else None
     if client is not None:
+        client.run(pin_blas)  # workers run tasks on threads: one BLAS limit for all of them
         executor = client.get_executor()
     folder = Path(out)
     try:
@@ -127,7 +129,7 @@ def _execute(config, chunks, executor, n_workers):
     pool = None
     if executor is None:
         ctx = multiprocessing.get_context("spawn")
-        executor = pool = ProcessPoolExecutor(n_workers, mp_context=ctx)
+        executor = pool = ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=pin_blas)
     futures: list[Future] = []
     try:
         futures = [executor.submit(run_chunk, config, c) for c in chunks]
