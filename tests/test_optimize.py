@@ -112,7 +112,7 @@ def test_last_full_step_is_taken_on_its_value_alone():
         return f, derivatives
 
     bounds = np.array([[-5.0, 5.0], [-5.0, 5.0]])
-    s = newton_maximize(staged, top + np.array([0.3, 0.2]), bounds)
+    s = newton_maximize(staged, top + np.array([0.05, 0.02]), bounds)
     assert s.converged and s.n_evals == calls["value"]
     assert calls["derivatives"] == calls["value"] - 1
     _, g, H = vgh(s.theta)

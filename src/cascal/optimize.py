@@ -110,10 +110,11 @@ def newton_maximize(
             converged = True  # Newton decrement: the remaining gain is round-off
             break
         # Near the top a full step squares the decrement (lambda_k+1 <= lambda_k^2 for
-        # self-concordant functions; 0.15 lambda_k^2 measured on likelihoods): one that
-        # promises less than a tenth of the tolerance there ends the run at its point,
-        # without the derivatives, if the value rises by at least half the predicted gain.
-        last = decrement is not None and decrement * decrement < 0.1 * tol
+        # self-concordant functions; typically 0.15 lambda_k^2 on likelihoods, but up to
+        # 100 lambda_k^2 on a flat stage-A ridge): a decrement whose square is below a thousandth
+        # of the tolerance ends the run at its point, without the derivatives, if the value
+        # rises by at least half the predicted gain.
+        last = decrement is not None and decrement * decrement < 1e-3 * tol
         if any(max(abs(a - b) for a, b in zip(theta, o, strict=True)) < _KNOWN for o in others):
             converged = True
             break
