@@ -196,7 +196,7 @@ def cost_j(
         trial: The simulated trial (its true device map).
         corrected: Estimated true positions at the readings of :func:`j_reference`, (2001,); or
         correct: A callable device readings -> estimated true positions.
-        reference: ``j_reference(trial)``, when already computed (it costs an inversion).
+        reference: ``j_reference(trial)``, when already computed.
     """
     grid, truth = reference if reference is not None else j_reference(trial)
     est = correct(grid) if correct is not None else np.asarray(corrected, dtype=float)
