@@ -546,3 +546,31 @@ def test_single_threaded_blas_nests_and_restores_the_setting():
                 assert blas_threads() == {1}
             assert blas_threads() == {1}  # the outer context still holds the limit
         assert blas_threads() == before
+
+
+@pytest.mark.parametrize("kernel", ["se", "matern52"])
+@pytest.mark.parametrize("with_dense", [False, True])
+def test_fit_reuses_the_optimisers_last_factor(monkeypatch, data, dense, kernel, with_dense):
+    from cascal.likelihood import Objective
+
+    reused = []
+    original = Objective.factor_at
+
+    def spy(self, theta):
+        out = original(self, theta)
+        reused.append(out is not None)
+        return out
+
+    monkeypatch.setattr(Objective, "factor_at", spy)
+    x, y = data
+    noise = dense if with_dense else None
+    fit = fit_gp(x, y, kernel=kernel, noise=noise, n_restarts=1, seed=0)
+    assert reused and reused[-1]  # the optimum was the latest evaluation: no new factor
+    # the stored state is that of the fitted hyperparameters, as a fresh factorisation
+    Kt = fit.kernel(x) + (dense if with_dense else 0.0) + fit.noise_variance * np.eye(N)
+    assert fit.jitter == 0.0
+    assert_allclose(fit.L @ fit.L.T, Kt, rtol=1e-12, atol=1e-12 * np.max(Kt))
+    assert_allclose(np.triu(fit.L, 1), 0.0, rtol=0, atol=0)
+    assert_allclose(fit.alpha, np.linalg.solve(Kt, y - x), rtol=1e-8)
+    assert fit.log_marginal_likelihood == pytest.approx(dense_lml(y - x, Kt), rel=1e-12)
+    assert fit.log_marginal_likelihood == pytest.approx(fit.optimization.value, rel=1e-12)

@@ -342,6 +342,8 @@ def _fit_gp(
         p = kern.n_params
         kern = kern.with_theta(theta[:p])
         sn2 = float(np.exp(theta[p])) if learn_noise else 0.0
+        factor = obj.factor_at(optimization.theta)
+        return _condition(xa, ya, kern, m, known, sn2, optimization, factor)
     return _condition(xa, ya, kern, m, known, sn2, optimization)
 
 
@@ -360,14 +362,19 @@ def _from_dict(kern: Kernel, hp: dict[str, float], learn_noise: bool) -> tuple[K
     return kern.with_theta(np.log(vals)), sn2
 
 
-def _condition(x, y, kern, m, known, sn2, optimization) -> FittedGP:
+def _condition(x, y, kern, m, known, sn2, optimization, factor=None) -> FittedGP:
+    """The fitted GP; ``factor``: ``(L, alpha)`` of the target covariance, when the
+    optimiser's latest evaluation already factorised it without jitter."""
     n = x.size
-    Kt = kern(x)
-    if known is not None:
-        Kt = known.add_to(Kt)
-    Kt.flat[:: n + 1] += sn2
-    L, jitter = linalg.cholesky(Kt, what="target covariance")
     r = y - m(x)
-    alpha = linalg.cho_solve(L, r)
+    if factor is not None:
+        (L, alpha), jitter = factor, 0.0
+    else:
+        Kt = kern(x)
+        if known is not None:
+            Kt = known.add_to(Kt)
+        Kt.flat[:: n + 1] += sn2
+        L, jitter = linalg.cholesky(Kt, what="target covariance")
+        alpha = linalg.cho_solve(L, r)
     lml = -0.5 * float(r @ alpha) - 0.5 * linalg.logdet(L) - 0.5 * n * _LOG2PI
     return FittedGP(x, y, kern, m, known, sn2, L, alpha, jitter, lml, optimization)

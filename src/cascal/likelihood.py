@@ -49,6 +49,8 @@ class Objective:
         self.known = known
         self.known_matrix = None if known is None else known.dense(self.n)
         self.profile = bool(profile)
+        self._exact = True
+        self._last: tuple | None = None  # (theta bytes, L, Kt^-1 r, r^T A^-1 r or None)
         if self.profile and not (isinstance(kernel, _Scaled) and known is None and learn_noise):
             raise ValueError("profiling needs a scaled kernel, no known noise, learned noise")
 
@@ -60,9 +62,25 @@ class Objective:
 
     def _factor(self, Kt: np.ndarray) -> np.ndarray:
         L, info = lapack.dpotrf(Kt, lower=1, clean=1)
+        self._exact = info == 0
         if info != 0:
             L, _ = linalg.cholesky(Kt)
         return L
+
+    def factor_at(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Lower Cholesky factor (n, n) of the target covariance and the weights
+        ``Kt^-1 r`` (n,) at ``theta`` (as optimised: profiled or not), if the latest
+        staged evaluation (:meth:`value_and_derivatives`) was there and needed no jitter;
+        else None. A fit's optimum is usually its latest evaluation: this saves the
+        final factorisation."""
+        last = self._last
+        if last is None or last[0] != np.asarray(theta, dtype=float).tobytes():
+            return None
+        _, L, a, q = last
+        if not self.profile:
+            return L, a
+        s2 = q / self.n  # Kt = s2 A: its factor sqrt(s2) L_A, its weights A^-1 r / s2
+        return L * math.sqrt(s2), a / s2
 
     def matrix(self, theta: np.ndarray, grad: bool = False):
         """Target covariance (n, n) and, with ``grad``, its derivatives (p, n, n)."""
@@ -157,6 +175,7 @@ class Objective:
         Kt.flat[:: n + 1] += sn2
         L = self._factor(Kt)
         a = linalg.cho_solve(L, r)
+        self._last = (theta.tobytes(), L, a, None) if self._exact else None
         lml = -0.5 * float(r @ a) - 0.5 * linalg.logdet(L) - 0.5 * n * _LOG2PI
         return lml, lambda: self._derivatives(L, a, rho, r1, r2, sf2, sn2)
 
@@ -216,6 +235,7 @@ class Objective:
         q = float(r @ al)
         if not q > 0.0:
             return -math.inf, lambda: (np.zeros(2), np.zeros((2, 2)))
+        self._last = (theta.tobytes(), L, al, q) if self._exact else None
         lml = -0.5 * n * (math.log(q / n) + 1.0 + _LOG2PI) - 0.5 * linalg.logdet(L)
         return lml, lambda: self._profiled_derivatives(L, al, q, r1, r2, gn)
 
@@ -252,6 +272,10 @@ class Objective:
         if not self.profile:
             return theta
         n = self.n
+        at = self.factor_at(theta)
+        if at is not None:  # s2 = r^T A^-1 r / n from the latest evaluation
+            s2 = self._last[3] / n
+            return np.array([theta[0], np.log(s2), theta[1] + np.log(s2)])
         k = self.kernel.with_theta(np.array([theta[0], 0.0]))
         A = k(self.x)
         A.flat[:: n + 1] += np.exp(theta[1])
@@ -262,8 +286,10 @@ class Objective:
     def bounds(self, user: dict[str, tuple[float, float]] | None = None) -> np.ndarray:
         """Finite log-space bounds (dim, 2) scaled to the data; ``user`` overrides by name."""
         x, r = self.x, self.r
-        span = float(np.ptp(x)) or 1.0
-        gaps = np.diff(np.unique(x))
+        xs = np.sort(x)
+        span = float(xs[-1] - xs[0]) or 1.0
+        gaps = np.diff(xs)
+        gaps = gaps[gaps > 0]  # the distinct positions' gaps
         gap = float(gaps.min()) if gaps.size else span
         v = float(np.var(r)) or float(np.mean(r**2)) or 1.0
         if self.known_matrix is not None:
