@@ -152,10 +152,9 @@ class Cascade:
             first: An already fitted stage-0 GP to reuse (e.g. one test-bed calibration
                 shared by several methods or devices); it must be fitted on stage 0's data.
         """
-        children = np.random.SeedSequence(self.seed).spawn(len(self.stages))
-        rngs = [np.random.default_rng(c) for c in children]
         if self.method == "lut":
             return self._fit_tables()
+        children = np.random.SeedSequence(self.seed).spawn(len(self.stages))
         models: list[FittedGP] = []
         used: list[Stage] = []
         for k, stage in enumerate(self.stages):
@@ -180,7 +179,7 @@ class Cascade:
                 noise=noise,
                 learn_noise=True,
                 n_restarts=self.n_restarts,
-                seed=rngs[k],
+                seed=children[k],  # a generator is made only where starts are screened
                 period=self.period,
                 names=(f"{stage.name} x", f"{stage.name} y"),
             )

@@ -249,7 +249,7 @@ def fit_gp(
     learn_noise: bool | None = None,
     hyperparameters: dict[str, float] | None = None,
     n_restarts: int = 5,
-    seed: int | np.random.Generator | None = 0,
+    seed: int | np.random.SeedSequence | np.random.Generator | None = 0,
     period: float | None = None,
     bounds: dict[str, tuple[float, float]] | None = None,
     names: tuple[str, str] = ("x", "y"),
@@ -270,7 +270,8 @@ def fit_gp(
         n_restarts: Local optimiser starts: the best local maxima of a likelihood table
             (SE and Matern kernels, :mod:`cascal.surrogate`), at most this many; else
             exactly this many, after screening seeded random candidates.
-        seed: Seed or Generator for the starts.
+        seed: Seed, SeedSequence or Generator for screened starts (unused where a table
+            gives the starts).
         period: Period of the ``"periodic"`` kernel, in the unit of ``x``.
         bounds: Optimisation bounds by hyperparameter name, natural units.
         names: Names of ``x`` and ``y`` in error messages.
@@ -318,7 +319,6 @@ def _fit_gp(
     if hyperparameters is not None:
         kern, sn2 = _from_dict(kern, hyperparameters, learn_noise)
     else:
-        rng = np.random.default_rng(seed)
         # The kernel variance is profiled out unless the user bounds it or the noise.
         bounded = {"variance", "noise_variance"} & set(bounds or {})
         profile = isinstance(kern, _Scaled) and known is None and learn_noise and not bounded
@@ -334,7 +334,7 @@ def _fit_gp(
             obj.value_and_grad,
             b,
             n_restarts=n_restarts,
-            rng=rng,
+            rng=None if starts else np.random.default_rng(seed),
             value_grad_hess=obj.value_and_derivatives if obj.has_hessian else None,
             starts=starts,
         )

@@ -225,7 +225,7 @@ def maximize(
     bounds: np.ndarray,
     *,
     n_restarts: int = 5,
-    rng: np.random.Generator,
+    rng: np.random.Generator | None,
     initial: np.ndarray | None = None,
     n_candidates: int | None = None,
     value_grad_hess: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray]] | None = None,
@@ -238,7 +238,7 @@ def maximize(
         value_and_grad: Objective and its gradient (p,).
         bounds: Lower and upper bounds, shape (p, 2), finite.
         n_restarts: Number of local optimiser runs (at least 1).
-        rng: Source of the candidate points.
+        rng: Source of the candidate points (None only with ``starts``).
         initial: Optional extra start, shape (p,), tried first.
         n_candidates: Screened candidates; default ``6 * n_restarts`` (at least 16).
         value_grad_hess: Objective, gradient and Hessian (p, p), or the objective and a
