@@ -52,17 +52,8 @@ def test_newton_escapes_a_saddle_region():
     np.testing.assert_allclose(np.abs(s.theta), [1.0, 0.0], atol=2e-5)
 
 
-def test_deferred_derivatives_give_the_same_run_and_are_skipped_on_rejected_steps():
-    # A concave function whose quadratic model overshoots far from the top: some trust-region
-    # steps are rejected, and only accepted points may pay for gradient and Hessian.
-    def vgh(t):
-        u = t - np.array([0.4, -0.2])
-        w = 1.0 + u @ u
-        f = -np.log(w) - 0.1 * float(u @ u)
-        g = -2.0 * u / w - 0.2 * u
-        H = -2.0 * np.eye(2) / w + 4.0 * np.outer(u, u) / w**2 - 0.2 * np.eye(2)
-        return f, g, H
-
+def _counted(vgh):
+    """``vgh`` staged as ``(f, derivatives)``, and a dict counting values and derivatives."""
     calls = {"value": 0, "derivatives": 0}
 
     def staged(t):
@@ -75,6 +66,21 @@ def test_deferred_derivatives_give_the_same_run_and_are_skipped_on_rejected_step
 
         return f, derivatives
 
+    return staged, calls
+
+
+def test_deferred_derivatives_give_the_same_run_and_are_skipped_on_rejected_steps():
+    # A concave function whose quadratic model overshoots far from the top: some trust-region
+    # steps are rejected, and only accepted points may pay for gradient and Hessian.
+    def vgh(t):
+        u = t - np.array([0.4, -0.2])
+        w = 1.0 + u @ u
+        f = -np.log(w) - 0.1 * float(u @ u)
+        g = -2.0 * u / w - 0.2 * u
+        H = -2.0 * np.eye(2) / w + 4.0 * np.outer(u, u) / w**2 - 0.2 * np.eye(2)
+        return f, g, H
+
+    staged, calls = _counted(vgh)
     bounds = np.array([[-20.0, 20.0], [-20.0, 20.0]])
     eager = newton_maximize(vgh, np.array([15.0, -12.0]), bounds)
     lazy = newton_maximize(staged, np.array([15.0, -12.0]), bounds)
@@ -99,18 +105,7 @@ def test_last_full_step_is_taken_on_its_value_alone():
         H[0, 0] -= 0.3 * u[0]
         return f, g, H
 
-    calls = {"value": 0, "derivatives": 0}
-
-    def staged(t):
-        calls["value"] += 1
-        f, g, H = vgh(t)
-
-        def derivatives():
-            calls["derivatives"] += 1
-            return g, H
-
-        return f, derivatives
-
+    staged, calls = _counted(vgh)
     bounds = np.array([[-5.0, 5.0], [-5.0, 5.0]])
     s = newton_maximize(staged, top + np.array([0.05, 0.02]), bounds)
     assert s.converged and s.n_evals == calls["value"]

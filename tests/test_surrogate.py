@@ -226,20 +226,26 @@ def test_maximize_runs_the_given_starts_and_screens_nothing():
     assert [s.theta0.tolist() for s in res.starts] == [t.tolist() for t in t0]
 
 
+def _spy_ranks(monkeypatch) -> list:
+    """Record the rank of every low-rank reduction (None where it fell back to dense)."""
+    ranks = []
+    lowrank = surrogate._lowrank_reduction
+
+    def spy(R, r):
+        out = lowrank(R, r)
+        ranks.append(None if out is None else out[0].size - 1)
+        return out
+
+    monkeypatch.setattr(surrogate, "_lowrank_reduction", spy)
+    return ranks
+
+
 def test_lowrank_rows_agree_with_the_dense_reduction_within_the_dropped_part(monkeypatch):
     n = 120
     x, r = scattered_data(7, n=n)
     d = np.subtract.outer(x, x)
     log_ls = np.log([0.004, 0.03, 0.08, 0.3, 1.0, 30.0])
-    used = []
-    lowrank = surrogate._lowrank_reduction
-
-    def spy(R, r):
-        out = lowrank(R, r)
-        used.append(None if out is None else out[0].size - 1)
-        return out
-
-    monkeypatch.setattr(surrogate, "_lowrank_reduction", spy)
+    used = _spy_ranks(monkeypatch)
     fast = surrogate._tridiagonal_table(SquaredExp, d, r, log_ls)
     assert used[-1] is None and len(used) >= 4  # long scales low rank, the shortest not
     assert all(k is not None and k <= n // 2 for k in used[:-1])
@@ -274,15 +280,7 @@ def test_tiny_sets_and_long_length_scales_match_the_dense_formula(kind, n, monke
     x = np.linspace(0.0, 1.0, n) + 0.01 * np.sin(np.arange(n))
     r = 0.01 * np.cos(3.0 * x) + 1e-3 * np.arange(n)
     log_ls = np.log([0.05, 1.0, 30.0, 1e8])
-    ranks = []
-    lowrank = surrogate._lowrank_reduction
-
-    def spy(R, r):
-        out = lowrank(R, r)
-        ranks.append(None if out is None else out[0].size - 1)
-        return out
-
-    monkeypatch.setattr(surrogate, "_lowrank_reduction", spy)
+    ranks = _spy_ranks(monkeypatch)
     table = surrogate._tridiagonal_table(kind, np.subtract.outer(x, x), r, log_ls)
     assert ranks[0] == 1  # the longest length scale: R is all ones to round-off
     checked = 0

@@ -73,14 +73,21 @@ class Objective:
         staged evaluation (:meth:`value_and_derivatives`) was there and needed no jitter;
         else None. A fit's optimum is usually its latest evaluation: this saves the
         final factorisation."""
-        last = self._last
-        if last is None or last[0] != np.asarray(theta, dtype=float).tobytes():
+        last = self._last_at(theta)
+        if last is None:
             return None
         _, L, a, q = last
         if not self.profile:
             return L, a
         s2 = q / self.n  # Kt = s2 A: its factor sqrt(s2) L_A, its weights A^-1 r / s2
         return L * math.sqrt(s2), a / s2
+
+    def _last_at(self, theta: np.ndarray) -> tuple | None:
+        """The latest staged evaluation's record if it was at ``theta``, else None."""
+        last = self._last
+        if last is None or last[0] != np.asarray(theta, dtype=float).tobytes():
+            return None
+        return last
 
     def matrix(self, theta: np.ndarray, grad: bool = False):
         """Target covariance (n, n) and, with ``grad``, its derivatives (p, n, n)."""
@@ -272,9 +279,9 @@ class Objective:
         if not self.profile:
             return theta
         n = self.n
-        at = self.factor_at(theta)
-        if at is not None:  # s2 = r^T A^-1 r / n from the latest evaluation
-            s2 = self._last[3] / n
+        last = self._last_at(theta)
+        if last is not None:  # s2 = r^T A^-1 r / n from the latest evaluation
+            s2 = last[3] / n
             return np.array([theta[0], np.log(s2), theta[1] + np.log(s2)])
         k = self.kernel.with_theta(np.array([theta[0], 0.0]))
         A = k(self.x)

@@ -128,7 +128,7 @@ class Dense(Noise):
         object.__setattr__(self, "min_eigenvalue", wmin)
 
     @classmethod
-    def from_factor(cls, factor: np.ndarray, tol: float = 1e-8, atol: float = 0.0) -> Dense:
+    def from_factor(cls, factor: np.ndarray) -> Dense:
         """The covariance ``U U^T`` of a factor ``U`` (n, k), positive semi-definite by
         construction: nothing is clipped, and :meth:`factor` comes from ``U`` in O(n k^2)
         instead of an eigendecomposition of the (n, n) matrix."""
@@ -142,8 +142,10 @@ class Dense(Noise):
         w, V = np.linalg.eigh(U.T @ U)  # U V_i / sqrt(w_i): eigenvectors of U U^T
         w = np.clip(w, 0.0, None)
         out = object.__new__(cls)
-        for name, value in (("cov", C), ("tol", float(tol)), ("atol", float(atol))):
-            object.__setattr__(out, name, value)
+        fields = cls.__dataclass_fields__  # tol and atol keep their defaults: no repair here
+        for name in ("tol", "atol"):
+            object.__setattr__(out, name, fields[name].default)
+        object.__setattr__(out, "cov", C)
         object.__setattr__(out, "n_clipped", 0)
         extra = U.shape[1] - len(U)  # U^T U has this many more (zero) eigenvalues
         object.__setattr__(out, "min_eigenvalue", float(w[extra]) if extra >= 0 else 0.0)

@@ -46,7 +46,7 @@ GAINS = np.exp(np.linspace(math.log(1e-10), math.log(10.0), 45))
 TOLERANCE = 0.1
 #: Local maxima this far (nats) below the best are not started from.
 MARGIN = 3.0
-#: Largest data set with a cached basis (100 eigenbases of n x n each).
+#: Largest data set with a cached basis (100 eigenbases of n x n each, in halves).
 MAX_POINTS = 160
 #: Off the grid: coarse rows this far apart (log length scale), then rows this far apart
 #: between the neighbours of the coarse table's best local maxima.
