@@ -528,10 +528,13 @@ def test_user_bounds_on_variance_or_noise_are_respected():
     assert capped.hyperparameters["variance"] <= 1e-6 * (1 + 1e-9)
 
 
-def test_single_threaded_blas_nests_and_restores_the_setting():
+def test_single_threaded_blas_nests_and_restores_the_setting(monkeypatch):
     from threadpoolctl import threadpool_info, threadpool_limits
 
+    from cascal import gp
     from cascal.gp import single_threaded_blas
+
+    monkeypatch.setattr(gp, "_PINNED", [])  # as in a process that pin_blas never ran in
 
     def blas_threads() -> set[int]:
         return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}

@@ -179,12 +179,15 @@ def test_bad_counts_and_scheduler_are_input_errors(tmp_path):
     assert not (tmp_path / "c").exists()  # nothing written before the cluster answered
 
 
-def test_pinned_blas_stays_single_threaded_on_every_thread():
+def test_pinned_blas_stays_single_threaded_on_every_thread(monkeypatch):
     from concurrent.futures import ThreadPoolExecutor
 
     from threadpoolctl import threadpool_info
 
+    from cascal import gp
     from cascal.gp import pin_blas, single_threaded_blas
+
+    monkeypatch.setattr(gp, "_PINNED", [])  # this test process is pinned only for this test
 
     def blas_threads() -> set[int]:
         return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}

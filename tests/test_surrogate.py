@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+from scipy import ndimage
 
 from cascal import surrogate
 from cascal.gp import fit_gp
@@ -319,3 +323,16 @@ def test_half_bases_diagonalise_the_correlation(kind, n):
         np.testing.assert_allclose(
             np.sort(basis.lam[i]), np.clip(np.linalg.eigvalsh(R), 0, None), atol=1e-12
         )
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    hnp.arrays(
+        float,
+        hnp.array_shapes(min_dims=1, max_dims=3, min_side=1, max_side=9),
+        elements=st.sampled_from([-np.inf, -2.0, -1.0, 0.0, 0.5, 1.0, 3.0]),
+    )
+)
+def test_neighbourhood_max_is_scipys_maximum_filter(table):
+    expected = ndimage.maximum_filter(table, size=3, mode="constant", cval=-np.inf)
+    np.testing.assert_array_equal(surrogate._neighbourhood_max(table), expected)

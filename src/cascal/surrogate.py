@@ -31,7 +31,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy import ndimage
 from scipy.linalg import lapack
 
 from .kernels import Kernel, Matern32, Matern52, SquaredExp
@@ -195,14 +194,28 @@ def _new_scan(kernel: Kernel, x: np.ndarray, r: np.ndarray, log_ls: np.ndarray) 
 def _local_maxima(table: np.ndarray, k: int) -> list[tuple[int, ...]]:
     """Indices of the ``k`` best local maxima of ``table`` (any dimension, neighbours
     including diagonals) within :data:`MARGIN` of the best."""
-    around = ndimage.maximum_filter(table, size=3, mode="constant", cval=-np.inf)
-    peak = np.isfinite(table) & (table >= around)
+    peak = np.isfinite(table) & (table >= _neighbourhood_max(table))
     idx = np.argwhere(peak)
     if not idx.size:
         return []
     vals = table[tuple(idx.T)]
     best = np.argsort(-vals, kind="stable")[:k]
     return [tuple(idx[i]) for i in best if vals[i] >= vals[best[0]] - MARGIN]
+
+
+def _neighbourhood_max(table: np.ndarray) -> np.ndarray:
+    """Largest entry of ``table`` within one step along every axis (diagonals included),
+    as ``scipy.ndimage.maximum_filter(size=3)`` with -inf outside; one pass per axis
+    (the maximum over a box is separable)."""
+    out = table
+    for axis in range(table.ndim):
+        head = (slice(None),) * axis + (slice(None, -1),)
+        tail = (slice(None),) * axis + (slice(1, None),)
+        box = out.copy()
+        np.maximum(box[tail], out[head], out=box[tail])
+        np.maximum(box[head], out[tail], out=box[head])
+        out = box
+    return out
 
 
 def profiled_starts(
