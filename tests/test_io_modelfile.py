@@ -77,6 +77,7 @@ def test_round_trip_is_exact(models, method, tmp_path):
                 np.testing.assert_allclose(n1, n0, rtol=0, atol=1e-12 * np.abs(n0).max())
             assert m0.optimization.value == m1.optimization.value
             assert len(m0.optimization.starts) == len(m1.optimization.starts)
+            assert m0.optimization.n_evals == m1.optimization.n_evals  # probes included
     assert loaded.sources == model.sources and loaded.unit == "m"
     doc = json.loads((tmp_path / "m.json").read_text())
     assert doc["schema_version"] == 1 and doc["provenance"]["cascal_version"]

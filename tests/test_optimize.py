@@ -192,3 +192,32 @@ def test_ascent_step_matches_eigenvalue_magnitude_step(H):
         assert decrement == pytest.approx(float(g @ ref), rel=1e-12)
     else:
         assert decrement is None
+
+
+def _twin_peaks(t):
+    """Two bumps in x, at 0 (height 1) and at 0.2 (height 1.05), with a dip between; -y^2."""
+    x, y = t
+    f, g, h = -y * y, 0.0, 0.0
+    for c, a in ((0.0, 1.0), (0.2, 1.05)):
+        u = (x - c) / 0.06
+        e = a * np.exp(-0.5 * u * u)
+        f += e
+        g += -e * u / 0.06
+        h += e * (u * u - 1.0) / 0.0036
+    return f, np.array([g, -2.0 * y]), np.array([[h, 0.0], [0.0, -2.0]])
+
+
+def test_probes_find_a_nearby_higher_maximum_the_start_missed():
+    bounds = np.array([[-1.0, 1.0], [-1.0, 1.0]])
+    value = lambda t: _twin_peaks(t)[0]  # noqa: E731
+    vg = lambda t: _twin_peaks(t)[:2]  # noqa: E731
+    kw = dict(rng=None, value_grad_hess=_twin_peaks, starts=[np.array([-0.05, 0.3])])
+    plain = maximize(value, vg, bounds, **kw)
+    assert abs(plain.theta[0]) < 0.02 and len(plain.starts) == 1  # the lower bump
+    step = np.array([0.2, 0.0])
+    probed = maximize(value, vg, bounds, probes=[-step, step], **kw)
+    assert len(probed.starts) == 2
+    assert abs(probed.theta[0] - 0.2) < 0.02 and probed.value > plain.value + 0.04
+    # from the higher bump, neither probe is higher: no run is added
+    again = maximize(value, vg, bounds, **{**kw, "starts": [probed.theta]}, probes=[-step, step])
+    assert len(again.starts) == 1 and again.value == pytest.approx(probed.value, abs=1e-12)

@@ -3,7 +3,8 @@
 Candidates are drawn by Latin hypercube sampling inside finite log bounds and ranked by the
 cheap objective (no gradient); a local optimiser then starts from the best ``n_restarts``
 distinct ones (and from a given initial point, if any). A caller with better starts (the
-surrogate of :mod:`cascal.surrogate`) passes them instead of the screening. The local
+surrogate of :mod:`cascal.surrogate`) passes them instead of the screening, and may pass
+probes: points around the best optimum whose higher value starts another run. The local
 optimiser is a bounded Newton method with the exact Hessian and a trust region when the
 objective provides one (quadratic convergence in a handful of steps), else L-BFGS-B with
 the analytic gradient.
@@ -49,11 +50,12 @@ class OptimResult:
     value: float
     starts: tuple[Start, ...]
     n_candidates: int
+    n_probes: int = 0
 
     @property
     def n_evals(self) -> int:
-        """Objective evaluations: candidates plus every local optimiser evaluation."""
-        return self.n_candidates + sum(s.n_evals for s in self.starts)
+        """Objective evaluations: candidates, probes and every local optimiser evaluation."""
+        return self.n_candidates + self.n_probes + sum(s.n_evals for s in self.starts)
 
 
 def newton_maximize(
@@ -230,6 +232,7 @@ def maximize(
     n_candidates: int | None = None,
     value_grad_hess: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray]] | None = None,
     starts: list[np.ndarray] | None = None,
+    probes: list[np.ndarray] | None = None,
 ) -> OptimResult:
     """Maximise ``value`` over the box ``bounds`` from several seeded starts.
 
@@ -245,6 +248,9 @@ def maximize(
             function giving the other two (see :func:`newton_maximize`): enables Newton.
         starts: Start points (p,) to use instead of screened candidates (none screened);
             an empty list or None screens as usual.
+        probes: Offsets (p,) from the best Newton optimum (Newton only): where the
+            objective is higher there, another Newton run starts there (a nearby maximum
+            that approximate starts merged with the one found). One value each.
 
     Returns:
         The best optimum and one :class:`Start` per run.
@@ -283,7 +289,12 @@ def maximize(
         for t0 in picks:
             starts.append(newton_maximize(value_grad_hess, t0, bounds, known=starts))
         best = _best(starts)
-        return OptimResult(theta=best.theta, value=best.value, starts=tuple(starts), n_candidates=m)
+        for offset in probes or ():
+            t0 = np.clip(best.theta + offset, lo, lo + width)
+            if _safe(value, t0) > best.value:
+                starts.append(newton_maximize(value_grad_hess, t0, bounds, known=starts))
+                best = _best(starts)
+        return OptimResult(best.theta, best.value, tuple(starts), m, len(probes or ()))
     from scipy.optimize import minimize  # here: importing it costs 0.2 s at every CLI start
 
     unit = np.column_stack([np.zeros(len(lo)), np.ones(len(lo))])

@@ -366,6 +366,7 @@ def _opt_dict(opt: OptimResult) -> dict[str, Any]:
         "theta": _floats(opt.theta),
         "value": _finite(opt.value),
         "n_candidates": int(opt.n_candidates),
+        "n_probes": int(opt.n_probes),
         "starts": [
             {
                 "theta0": _floats(s.theta0),
@@ -388,7 +389,8 @@ def _opt_from(d: dict) -> OptimResult:
               s["n_evals"], s["converged"])
         for s in d["starts"]
     )  # fmt: skip
-    return OptimResult(np.array(d["theta"], float), val(d["value"]), starts, d["n_candidates"])
+    theta = np.array(d["theta"], float)
+    return OptimResult(theta, val(d["value"]), starts, d["n_candidates"], d.get("n_probes", 0))
 
 
 def _floats(a: Any) -> list[float]:
