@@ -112,16 +112,16 @@ def main() -> None:
         costs.append((n, fit, t_table, *evaluation_costs(x, y, fit)))
     print()
     print(
-        "| N | table of starts [ms] | screened candidates | Newton runs | Newton evaluations "
-        "| one Newton evaluation [µs] | its LAPACK/BLAS [µs] |"
+        "| N | table of starts [ms] | screened candidates | probes | Newton runs "
+        "| Newton evaluations | one Newton evaluation [µs] | its LAPACK/BLAS [µs] |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     for n, fit, t_table, t_eval, t_floor in costs:
         opt = fit.optimization
         newton = sum(s.n_evals for s in opt.starts)
         print(
-            f"| {n} | {t_table * 1e3:.2f} | {opt.n_candidates} | {len(opt.starts)} | {newton} "
-            f"| {t_eval * 1e6:.0f} | {t_floor * 1e6:.0f} |"
+            f"| {n} | {t_table * 1e3:.2f} | {opt.n_candidates} | {opt.n_probes} "
+            f"| {len(opt.starts)} | {newton} | {t_eval * 1e6:.0f} | {t_floor * 1e6:.0f} |"
         )
 
 
