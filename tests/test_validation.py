@@ -194,3 +194,12 @@ def test_bounds_checked():
 def test_learn_noise_false_needs_known_noise():
     with pytest.raises(InputError, match="a known noise must be given"):
         fit_gp(X, Y, learn_noise=False)
+
+
+def test_huge_finite_values_are_accepted_and_a_nan_after_them_named():
+    from cascal.validation import as_positions
+
+    big = np.array([1e308, 1e308, -1e308])
+    np.testing.assert_array_equal(as_positions(big, "x"), big)
+    with pytest.raises(InputError, match=r"x: expected finite values, got nan at index 3"):
+        as_positions(np.r_[big, np.nan], "x")

@@ -13,7 +13,6 @@ whose correction comes from stage k - 1 evaluated at the upper sensor's readings
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -141,7 +140,8 @@ class Cascade:
         """The same (already checked) stages and settings with another ``method``."""
         if method not in METHODS:
             raise InputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
-        other = copy.copy(self)
+        other = object.__new__(Cascade)  # a shallow copy without copy.copy's protocol
+        other.__dict__.update(self.__dict__)
         other.method = method
         return other
 

@@ -295,10 +295,11 @@ class Objective:
         x, r = self.x, self.r
         xs = np.sort(x)
         span = float(xs[-1] - xs[0]) or 1.0
-        gaps = np.diff(xs)
+        gaps = xs[1:] - xs[:-1]
         gaps = gaps[gaps > 0]  # the distinct positions' gaps
         gap = float(gaps.min()) if gaps.size else span
-        v = float(np.var(r)) or float(np.mean(r**2)) or 1.0
+        n = r.size  # the variance (as np.var), else the mean square, else 1
+        v = float(np.square(r - r.mean()).sum()) / n or float(np.square(r).sum()) / n or 1.0
         if self.known_matrix is not None:
             v = max(v, float(np.mean(np.diagonal(self.known_matrix))))
         rows: dict[str, tuple[float, float]] = {}

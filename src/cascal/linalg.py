@@ -58,7 +58,7 @@ def cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def logdet(L: np.ndarray) -> float:
     """log |L L^T| from the Cholesky factor ``L`` (n, n)."""
-    return 2.0 * float(np.sum(np.log(np.diagonal(L))))
+    return 2.0 * float(np.log(L.diagonal()).sum())
 
 
 def inverse_from_cholesky(L: np.ndarray) -> np.ndarray:

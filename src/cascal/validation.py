@@ -29,7 +29,10 @@ def as_positions(a: object, name: str) -> np.ndarray:
         raise InputError(f"{name}: expected numbers, got {type(a).__name__} ({exc})") from None
     if arr.ndim != 1:
         raise InputError(f"{name}: expected shape (n,), got {arr.shape}")
-    bad = np.flatnonzero(~np.isfinite(arr))
+    finite = np.isfinite(arr)
+    if finite.all():
+        return arr
+    bad = np.flatnonzero(~finite)
     if bad.size:
         raise InputError(
             f"{name}: expected finite values, got {arr[bad[0]]} at index {bad[0]}"
@@ -56,8 +59,12 @@ def check_pair(
     if xa.size < min_points:
         raise InputError(f"{names[0]}: expected at least {min_points} points, got {xa.size}")
     order = np.argsort(xa, kind="stable")
-    xs, ys = xa[order], ya[order]
-    same = np.flatnonzero((np.diff(xs) == 0) & (np.diff(ys) != 0))
+    xs = xa[order]
+    repeated = xs[1:] == xs[:-1]
+    if not repeated.any():
+        return xa, ya
+    ys = ya[order]
+    same = np.flatnonzero(repeated & (ys[1:] != ys[:-1]))
     if same.size:
         i, j = order[same[0]], order[same[0] + 1]
         raise InputError(
@@ -77,6 +84,8 @@ def check_increasing(x: np.ndarray, y: np.ndarray, names: tuple[str, str] = ("x"
     """
     order = np.argsort(x, kind="stable")
     xs, ys = x[order], y[order]
+    if (ys[1:] > ys[:-1]).all() and (xs[1:] > xs[:-1]).all():
+        return
     keep = np.r_[True, np.diff(xs) > 0]
     xs, ys, idx = xs[keep], ys[keep], order[keep]
     bad = np.flatnonzero(np.diff(ys) <= 0)
