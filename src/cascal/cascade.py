@@ -154,7 +154,6 @@ class Cascade:
         """
         if self.method == "lut":
             return self._fit_tables()
-        children = np.random.SeedSequence(self.seed).spawn(len(self.stages))
         models: list[FittedGP] = []
         used: list[Stage] = []
         for k, stage in enumerate(self.stages):
@@ -179,7 +178,7 @@ class Cascade:
                 noise=noise,
                 learn_noise=True,
                 n_restarts=self.n_restarts,
-                seed=children[k],  # a generator is made only where starts are screened
+                seed=_stage_seed(self.seed, k),  # a generator only where starts are screened
                 period=self.period,
                 names=(f"{stage.name} x", f"{stage.name} y"),
             )
@@ -195,6 +194,11 @@ class Cascade:
             tables.append(fit_table(stage.x, targets, (f"{stage.name} x", f"{stage.name} y")))
             used.append(Stage(stage.x, targets, stage.noise, stage.name))
         return FittedCascade("lut", tuple(tables), tuple(used))
+
+
+def _stage_seed(seed: int | None, k: int) -> np.random.SeedSequence:
+    """Stage ``k``'s stream: ``SeedSequence(seed).spawn(n)[k]`` without the parent."""
+    return np.random.SeedSequence(seed, spawn_key=(k,))
 
 
 def _propagated(factor: np.ndarray, stage: Stage) -> Noise:

@@ -131,9 +131,12 @@ def draw_map(rng: np.random.Generator) -> SensorMap:
 
 def reference_positions() -> np.ndarray:
     """The 64 true positions of D2: 100 equally spaced on [0, 1], minus 10 at each end and
-    the middle 16 of the 80 left (where the reference instrument cannot reach)."""
-    grid = np.linspace(0.0, 1.0, 100)[10:90]
-    return np.r_[grid[:32], grid[48:]]
+    the middle 16 of the 80 left (where the reference instrument cannot reach). A copy."""
+    return _REFERENCE.copy()
+
+
+_GRID = np.linspace(0.0, 1.0, 100)[10:90]
+_REFERENCE = np.r_[_GRID[:32], _GRID[48:]]
 
 
 @dataclass(frozen=True, slots=True)
