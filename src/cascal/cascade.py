@@ -140,7 +140,7 @@ class Cascade:
         """The same (already checked) stages and settings with another ``method``."""
         if method not in METHODS:
             raise InputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
-        other = object.__new__(Cascade)  # a shallow copy without copy.copy's protocol
+        other = object.__new__(type(self))  # a shallow copy without copy.copy's protocol
         other.__dict__.update(self.__dict__)
         other.method = method
         return other

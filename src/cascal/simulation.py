@@ -135,8 +135,7 @@ def reference_positions() -> np.ndarray:
     return _REFERENCE.copy()
 
 
-_GRID = np.linspace(0.0, 1.0, 100)[10:90]
-_REFERENCE = np.r_[_GRID[:32], _GRID[48:]]
+_REFERENCE = np.delete(np.linspace(0.0, 1.0, 100)[10:90], np.s_[32:48])
 
 
 @dataclass(frozen=True, slots=True)
