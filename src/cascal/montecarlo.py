@@ -30,10 +30,11 @@ class StudyConfig:
 
     Attributes:
         seed: Root seed of the study.
-        n_restarts: Local optimiser starts per GP stage fit, at most: the best screened seeded
-            candidates (stage A), or the surrogate table's best local maxima (stage B, on a
-            near grid). With three, a fit ends below the best optimum about as often as a
-            five-start L-BFGS-B from random starts does (``make bench`` counts both).
+        n_restarts: Local optimiser starts per GP stage fit, at most: a likelihood table's
+            best local maxima (stage A: the exact off-grid table; stage B: the grid
+            surrogate), then the probes of :func:`cascal.fit_gp`. With three, no fit of the
+            benchmark's sample ends below a five-start L-BFGS-B from random starts
+            (``make bench`` counts both directions).
         kernel: Kernel of every GP stage.
         methods: Methods compared in every trial.
     """
@@ -101,8 +102,9 @@ def _run_trial(config: StudyConfig, index: int) -> TrialResult:
     t = time.perf_counter()
     chain = Cascade([trial.d2, trial.d1], "bayes", **settings)
     if any(m != "lut" for m in config.methods):
-        # Stage A is the same GP for bayes and homoscedastic (stage seeds are spawned per
-        # stage, so a one-stage cascade fits it exactly as the two-stage one would): fit once.
+        # Stage A is the same GP for bayes and homoscedastic (a stage's seed derives from
+        # (seed, stage) alone, so a one-stage cascade fits it exactly as the two-stage one
+        # would): fit once.
         stage0 = Cascade(chain.stages[:1], "bayes", **settings).fit().models[0]
         seconds["stage_a"] = time.perf_counter() - t
         fits["stage0"] = _fit_record(stage0)
