@@ -23,6 +23,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 import cascal
+from blas import describe as blas
 from cascal.gp import Objective
 from cascal.kernels import SquaredExp
 from cascal.surrogate import profiled_starts
@@ -123,6 +124,8 @@ def main() -> None:
             f"| {n} | {t_table * 1e3:.2f} | {opt.n_candidates} | {opt.n_probes} "
             f"| {len(opt.starts)} | {newton} | {t_eval * 1e6:.0f} | {t_floor * 1e6:.0f} |"
         )
+    print()
+    print(f"BLAS: {blas()}")
 
 
 if __name__ == "__main__":

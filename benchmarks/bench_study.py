@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from blas import describe as blas
 from cascal.cascade import Cascade
 from cascal.gp import Objective, single_threaded_blas
 from cascal.kernels import SquaredExp
@@ -64,7 +65,7 @@ def main() -> None:
     s = out.summary
     print(
         f"study: {args.trials} trials, {args.workers} workers, {wall:.1f} s wall, "
-        f"{args.trials / wall:.1f} trials/s"
+        f"{args.trials / wall:.1f} trials/s; BLAS: {blas()}, one thread per worker"
     )
     sec = s["seconds_per_trial"]
     cpu = sum(sec.values())
