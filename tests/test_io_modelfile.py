@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import copy
 import json
 
+import jsonschema
 import numpy as np
 import pytest
 
@@ -23,10 +25,10 @@ from cascal.workflow import fit_model
 def _stages():
     case = linear_demo(0)
     out = []
-    for st in case.stages:
-        rep = aggregate_repeats(st.x, st.y)
+    for stage in case.stages:
+        rep = aggregate_repeats(stage.x, stage.y)
         noise = rep.noise if np.any(rep.counts > 1) else None
-        src = Source(st.file, "ab" * 32, st.x.size, st.columns)
+        src = Source(stage.file, "ab" * 32, stage.x.size, stage.columns)
         out.append(StageData(rep.x, rep.y, noise, rep.counts, rep.first + 2, src))
     return out
 
@@ -189,9 +191,76 @@ def test_schema_validator():
     validate(1, {"oneOf": [{"type": "null"}, {"type": "integer", "minimum": 1}]})
 
 
-def test_shipped_schema_agrees_with_jsonschema(saved):
-    jsonschema = pytest.importorskip("jsonschema")
-    jsonschema.validate(json.loads(saved.read_text()), load_schema("model", 1))
+def _shortened(node, k: int = 2):
+    """A copy of a JSON document with every list cut to its first ``k`` items."""
+    if isinstance(node, dict):
+        return {key: _shortened(v, k) for key, v in node.items()}
+    if isinstance(node, list):
+        return [_shortened(v, k) for v in node[:k]]
+    return node
+
+
+def _paths(node, prefix=()):
+    """Paths to every value of a JSON document below its root."""
+    if isinstance(node, dict):
+        items = node.items()
+    elif isinstance(node, list):
+        items = enumerate(node)
+    else:
+        return
+    for key, value in items:
+        yield (*prefix, key)
+        yield from _paths(value, (*prefix, key))
+
+
+#: Replacement values of every JSON type, at the edges the schema's rules test.
+_EDITS = [None, True, False, 0, -1, 1, 0.0, 2.5, [], [1.0], {}]
+_EDITS += ["", "x", "bayes", "a" * 64, "0" * 64]
+
+
+@pytest.mark.parametrize("method", ["bayes", "lut"])  # a GP stage (dense noise) and a table
+def test_shipped_schema_agrees_with_jsonschema(models, method, tmp_path):
+    """Our validator and the jsonschema library accept and refuse the same documents: each
+    saved model (lists cut to 2 items), and each one edit away from it: any value replaced
+    by any of ``_EDITS``, any key removed, an unknown key added to any object, an item
+    appended to any list."""
+    schema = load_schema("model", 1)
+    peer = jsonschema.Draft202012Validator(schema)
+    doc = _shortened(json.loads(save_model(tmp_path / "m.json", models[method]).read_text()))
+
+    def ours(d) -> bool:
+        try:
+            validate(d, schema)
+        except SchemaError:
+            return False
+        return True
+
+    def edited(path, edit):
+        d = copy.deepcopy(doc)
+        parent = d
+        for key in path[:-1]:
+            parent = parent[key]
+        edit(parent, path[-1])
+        return d
+
+    variants = [doc]
+    for path in _paths(doc):
+        variants += [edited(path, lambda p, k, v=v: p.__setitem__(k, v)) for v in _EDITS]
+        variants.append(edited(path, lambda p, k: p.__delitem__(k)))
+        variants.append(edited(path, lambda p, k: _grow(p[k])))
+    verdicts = [(peer.is_valid(d), ours(d)) for d in variants]
+    disagree = [d for d, (a, b) in zip(variants, verdicts, strict=True) if a != b]
+    assert not disagree, disagree[0]
+    refused = sum(not a for a, _ in verdicts)
+    assert verdicts[0] == (True, True) and 0.5 * len(variants) < refused < len(variants)
+
+
+def _grow(node) -> None:
+    """Add an unknown key to an object or an item to a list (other values stay as they are)."""
+    if isinstance(node, dict):
+        node["unexpected"] = 1.0
+    elif isinstance(node, list):
+        node.append(node[0] if node else 1.0)
 
 
 def test_atomic_write_gives_the_usual_permissions(tmp_path):
