@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
+import sqlite3
 import subprocess
 import sys
 
@@ -58,6 +60,54 @@ def test_folder_with_other_configuration_is_refused(tmp_path):
     run_study(tmp_path, trials=2, config=CONFIG, workers=1)
     with pytest.raises(InputError, match="holds a study with configuration"):
         run_study(tmp_path, trials=2, config=StudyConfig(seed=8, n_restarts=2), workers=1)
+
+
+def _sqlite(path, *statements):
+    con = sqlite3.connect(path)
+    with con:
+        for sql in statements:
+            con.execute(sql)
+    con.close()
+
+
+def _study_then(*statements):
+    """A damage: edit a finished two-trial study's database with SQL statements."""
+
+    def damage(db):
+        run_study(db.parent, trials=2, config=CONFIG, workers=1)
+        _sqlite(db, *statements)
+
+    return damage
+
+
+@pytest.mark.parametrize(
+    ("damage", "words"),
+    [
+        (lambda db: db.write_bytes(b"garbage" * 100), "not a readable cascal study database"),
+        (lambda db: _sqlite(db, "CREATE TABLE other (a)"), "holds the tables ['other']"),
+        (
+            _study_then("UPDATE meta SET value='{oops' WHERE key='config'"),
+            "unreadable configuration",
+        ),
+        (
+            _study_then("UPDATE meta SET value='2' WHERE key='schema'"),
+            "schema '2'; this cascal reads schema 1",
+        ),
+        (_study_then("ALTER TABLE trials ADD COLUMN extra"), "has trial columns"),
+        (_study_then("UPDATE trials SET fits='[1' WHERE idx=1"), "unreadable record of trial 1"),
+    ],
+    ids=["not_sqlite", "foreign_tables", "bad_config", "newer_schema", "columns", "bad_record"],
+)
+def test_damaged_database_is_refused_untouched(tmp_path, damage, words):
+    """A study.sqlite that is not, or no longer, a readable study of this schema is refused
+    with a message naming it, and nothing is written to it."""
+    db = tmp_path / "study.sqlite"
+    damage(db)
+    before = db.read_bytes()
+    with pytest.raises(InputError, match=re.escape(words)) as info:
+        run_study(tmp_path, trials=2, config=CONFIG, workers=1)
+    assert str(db) in str(info.value)
+    assert db.read_bytes() == before
 
 
 def test_dask_cluster_gives_the_local_numbers(tmp_path):

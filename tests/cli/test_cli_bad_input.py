@@ -118,6 +118,14 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
         ["fit-devices", bad_tb, "--devices", files[0].parent, "-o", dest], dest, ["row 4"],
         bad_tb.name,
     )  # fmt: skip
+    # A study folder whose database is not one.
+    folder = tmp / "study_corrupt"
+    folder.mkdir()
+    (folder / "study.sqlite").write_bytes(b"not a database, just bytes\n" * 40)
+    out["study_corrupt_database"] = (
+        ["study", "--trials", "2", "--workers", "1", "--out", folder], folder / "trials.csv",
+        ["not a readable cascal study database", "choose another --out folder"], "study.sqlite",
+    )  # fmt: skip
     return out
 
 
@@ -145,6 +153,7 @@ ALL = [
     "readings_out_of_range_refused",
     "report_edited_model",
     "fleet_bad_testbed",
+    "study_corrupt_database",
 ]
 
 

@@ -30,7 +30,9 @@ class StudyDB:
             on its index alone, so the trial count is not part of it: a study can grow.
 
     Raises:
-        InputError: The folder holds a study with another configuration.
+        InputError: The folder holds a study with another configuration, or its
+            ``study.sqlite`` is not a readable study of this schema (nothing is written
+            to it then), or is in use by another process.
     """
 
     def __init__(self, folder: str | Path, config: dict) -> None:
@@ -39,31 +41,73 @@ class StudyDB:
         self.path = self.folder / DB_NAME
         self.methods = list(config["methods"])
         self.con = sqlite3.connect(self.path)
+        try:
+            self._open(config)
+        except sqlite3.DatabaseError as exc:
+            self.con.close()
+            raise self._unreadable(exc) from None
+        except BaseException:
+            self.con.close()
+            raise
+
+    def _open(self, config: dict) -> None:
+        """Check what the file holds before writing to it; create the tables if it is new."""
+        tables = {
+            r[0] for r in self.con.execute("SELECT name FROM sqlite_master WHERE type='table'")
+        }
+        if tables and tables != {"meta", "trials"}:
+            raise self._refuse(f"holds the tables {sorted(tables)}, not a cascal study")
+        wanted = json.dumps(config, sort_keys=True)
+        if tables:
+            meta = dict(self.con.execute("SELECT key, value FROM meta").fetchall())
+            if meta.get("schema") != str(_SCHEMA):
+                raise self._refuse(
+                    f"has study schema {meta.get('schema')!r}; this cascal reads schema {_SCHEMA}"
+                )
+            if "config" not in meta:
+                raise self._refuse("has no configuration")
+            try:
+                stored = _identity(meta["config"])
+            except (ValueError, TypeError, AttributeError):
+                raise self._refuse(f"has an unreadable configuration {meta['config']!r}") from None
+            if stored != _identity(wanted):
+                raise self._refuse(
+                    f"holds a study with configuration {meta['config']}, not {wanted}",
+                    "rerun with the same options to resume it, or choose another --out folder",
+                )
+            names = [r[1] for r in self.con.execute("PRAGMA table_info(trials)")]
+            expected = ["idx", *(f"j_{m}" for m in self.methods), "redraws", "fits", "seconds"]
+            if names != expected:
+                raise self._refuse(f"has trial columns {names}, expected {expected}")
         self.con.execute("PRAGMA journal_mode=WAL")
         self.con.execute("PRAGMA synchronous=NORMAL")
+        if tables:
+            return
         cols = ", ".join(f"j_{m} REAL NOT NULL" for m in self.methods)
         with self.con:
-            self.con.execute("CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT)")
+            self.con.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT)")
             self.con.execute(
-                f"CREATE TABLE IF NOT EXISTS trials (idx INTEGER PRIMARY KEY, {cols}, "
+                f"CREATE TABLE trials (idx INTEGER PRIMARY KEY, {cols}, "
                 "redraws INTEGER NOT NULL, fits TEXT NOT NULL, seconds TEXT NOT NULL)"
             )
-            row = self.con.execute("SELECT value FROM meta WHERE key='config'").fetchone()
-            wanted = json.dumps(config, sort_keys=True)
-            if row is None:
-                self.con.execute("INSERT INTO meta VALUES ('config', ?)", (wanted,))
-                self.con.execute("INSERT INTO meta VALUES ('schema', ?)", (str(_SCHEMA),))
-                self.con.execute("INSERT INTO meta VALUES ('cascal', ?)", (__version__,))
-        if row is not None and _identity(row[0]) != _identity(wanted):
-            self.con.close()
-            raise InputError(
-                f"{self.path} holds a study with configuration {row[0]}, not {wanted}; "
-                "rerun with the same options to resume it, or choose another --out folder"
-            )
+            self.con.execute("INSERT INTO meta VALUES ('config', ?)", (wanted,))
+            self.con.execute("INSERT INTO meta VALUES ('schema', ?)", (str(_SCHEMA),))
+            self.con.execute("INSERT INTO meta VALUES ('cascal', ?)", (__version__,))
+
+    def _refuse(self, problem: str, hint: str = "choose another --out folder") -> InputError:
+        return InputError(f"{self.path} {problem}; {hint}")
+
+    def _unreadable(self, exc: sqlite3.DatabaseError) -> InputError:
+        if "locked" in str(exc):
+            return InputError(f"{self.path} is in use by another study process ({exc})")
+        return self._refuse(f"is not a readable cascal study database ({exc})")
 
     def done(self) -> set[int]:
         """Indices of the trials already stored."""
-        return {r[0] for r in self.con.execute("SELECT idx FROM trials")}
+        try:
+            return {r[0] for r in self.con.execute("SELECT idx FROM trials")}
+        except sqlite3.DatabaseError as exc:
+            raise self._unreadable(exc) from None
 
     def add(self, results: Iterable[TrialResult]) -> None:
         """Store finished trials in one transaction (all or none); a stored index is kept."""
@@ -78,23 +122,31 @@ class StudyDB:
             )
             for r in results
         ]
-        with self.con:
-            self.con.executemany(f"INSERT OR IGNORE INTO trials VALUES ({q})", rows)
+        try:
+            with self.con:
+                self.con.executemany(f"INSERT OR IGNORE INTO trials VALUES ({q})", rows)
+        except sqlite3.DatabaseError as exc:
+            raise self._unreadable(exc) from None
 
     def results(self) -> list[TrialResult]:
         """Every stored trial, ordered by index."""
         cols = ", ".join(f"j_{m}" for m in self.methods)
+        query = f"SELECT idx, {cols}, redraws, fits, seconds FROM trials ORDER BY idx"
+        k = len(self.methods)
         out = []
-        for row in self.con.execute(
-            f"SELECT idx, {cols}, redraws, fits, seconds FROM trials ORDER BY idx"
-        ):
-            k = len(self.methods)
-            cost = dict(zip(self.methods, row[1 : 1 + k], strict=True))
-            out.append(
-                TrialResult(
-                    row[0], cost, row[1 + k], json.loads(row[2 + k]), json.loads(row[3 + k])
-                )
-            )
+        try:
+            rows = self.con.execute(query).fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise self._unreadable(exc) from None
+        for row in rows:
+            try:
+                cost = {m: float(v) for m, v in zip(self.methods, row[1 : 1 + k], strict=True)}
+                fits, seconds = json.loads(row[2 + k]), json.loads(row[3 + k])
+                if not (isinstance(fits, dict) and isinstance(seconds, dict)):
+                    raise ValueError("fits and seconds must be JSON objects")
+            except (ValueError, TypeError) as exc:
+                raise self._refuse(f"has an unreadable record of trial {row[0]} ({exc})") from None
+            out.append(TrialResult(row[0], cost, int(row[1 + k]), fits, seconds))
         return out
 
     def close(self) -> None:
