@@ -9,33 +9,20 @@ import jsonschema
 import numpy as np
 import pytest
 
-from cascal.demo import linear_demo
 from cascal.errors import InputError, ModelFileError
 from cascal.gp import FittedGP, fit_gp
 from cascal.io import modelfile as mf
-from cascal.io.data import Source, StageData
 from cascal.io.modelfile import load_model, model_to_dict, save_model
 from cascal.io.schema import SchemaError, load_schema, validate
 from cascal.kernels import Constant, Matern32, Periodic, SquaredExp
 from cascal.noise import Dense, Diagonal
-from cascal.validation import aggregate_repeats
 from cascal.workflow import fit_model
-
-
-def _stages():
-    case = linear_demo(0)
-    out = []
-    for stage in case.stages:
-        rep = aggregate_repeats(stage.x, stage.y)
-        noise = rep.noise if np.any(rep.counts > 1) else None
-        src = Source(stage.file, "ab" * 32, stage.x.size, stage.columns)
-        out.append(StageData(rep.x, rep.y, noise, rep.counts, rep.first + 2, src))
-    return out
+from utils import demo_stages
 
 
 @pytest.fixture(scope="module")
 def models():
-    stages = _stages()
+    stages = demo_stages()
     return {m: fit_model(stages, method=m, n_restarts=1) for m in ("bayes", "homoscedastic", "lut")}
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["assert_allclose", "dense_lml", "dense_posterior", "fd_gradient", "se"]
+__all__ = ["assert_allclose", "demo_stages", "dense_lml", "dense_posterior", "fd_gradient", "se"]
 
 
 def assert_allclose(actual, desired, *, rtol: float = 1e-10, atol: float = 0.0, err_msg=""):
@@ -48,3 +48,19 @@ def fd_gradient(f, theta: np.ndarray, h: float = 1e-5) -> np.ndarray:
         e[j] = h
         g[j] = (f(theta + e) - f(theta - e)) / (2 * h)
     return g
+
+
+def demo_stages():
+    """The linear demo case's stages as the workflow reads them from files (repeats
+    averaged, provenance filled in), reference end first."""
+    from cascal.demo import linear_demo
+    from cascal.io.data import Source, StageData
+    from cascal.validation import aggregate_repeats
+
+    out = []
+    for stage in linear_demo(0).stages:
+        rep = aggregate_repeats(stage.x, stage.y)
+        noise = rep.noise if np.any(rep.counts > 1) else None
+        src = Source(stage.file, "ab" * 32, stage.x.size, stage.columns)
+        out.append(StageData(rep.x, rep.y, noise, rep.counts, rep.first + 2, src))
+    return out

@@ -387,8 +387,10 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=0, help="seed of the simulation (default 0)")
     demo.set_defaults(func=_cmd_demo)
 
+    from .cli_export import add_export_parser
     from .cli_study import add_study_parser
 
+    add_export_parser(sub)
     add_study_parser(sub)
     return p
 

@@ -1,4 +1,5 @@
-"""``cascal demo``: simulated example files, then ``fit``, ``correct`` and ``report`` on them.
+"""``cascal demo``: simulated example files, then ``fit``, ``correct``, ``report`` and
+``export`` on them.
 
 Two cases (:mod:`cascal.demo`): a linear axis in metres whose reference cannot reach a
 stretch in the middle, and a rotary table in degrees whose reference cannot reach a sector
@@ -49,6 +50,9 @@ def run_demo(out: Path, *, seed: int, main: Callable[[Sequence[str]], int]) -> i
     print(f"  {linear / 'report.html'}   linear axis: fits, bands, gaps, final correction")
     print(f"  {rotary / 'report.html'}   rotary table (periodic kernel over 360 deg)")
     print(f"  {linear / 'corrected.csv'}   reading, corrected, u, U, out_of_range")
+    print(
+        f"  {linear / 'linear_compensation.h'}   compensation table and function for a controller"
+    )
     print(f"  {figure}   the rotary correction across 0/360 deg")
     return 0
 
@@ -79,6 +83,7 @@ def _run_case(case: DemoCase, folder: Path, main: Callable[[Sequence[str]], int]
         ["fit", *files, "-o", str(model), *extra],
         ["correct", str(model), str(readings), "-o", str(corrected)],
         ["report", str(model), "-o", str(report)],
+        ["export", str(model), "-o", str(folder / f"{case.name}_compensation.h")],
     ):
         print(f"\n$ cascal {shlex.join(argv)}", flush=True)
         status = main(argv)

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .cascade import Cascade
+from .compensation import MAX_NODES, CompensationTable, compensation_table
 from .errors import CascalError, InputError
 from .gp import FittedGP
 from .io.data import StageData, read_stage
@@ -29,6 +30,7 @@ __all__ = [
     "COVERAGE_FACTOR",
     "Correction",
     "DeviceResult",
+    "compensation",
     "correct",
     "fit_devices",
     "fit_model",
@@ -165,6 +167,54 @@ def correct(model: CalibrationModel, readings: object) -> Correction:
     else:
         corrected, u = device(r), np.full(r.shape, np.nan)
     return Correction(r, corrected, u, out)
+
+
+def compensation(
+    model: CalibrationModel, tolerance: float | None = None, *, rtol: float = 0.1
+) -> CompensationTable:
+    """The model's correction as a compensation table for a controller (linear
+    interpolation on a uniform grid over the calibrated range, or over one period).
+
+    Args:
+        model: The calibration model; its last stage corrects device readings.
+        tolerance: Largest interpolation error, in the model's unit. Default: ``rtol``
+            times the smallest standard uncertainty over the range (a GP model only).
+        rtol: Default tolerance relative to the smallest standard uncertainty.
+
+    Raises:
+        InputError: No tolerance for a lookup-table model, a tolerance that is not a
+            positive number, or one that needs more than ``MAX_NODES`` nodes.
+    """
+    device = model.fitted.device
+    lo, hi = (0.0, float(model.period)) if model.periodic else model.calibrated_range
+    gp = isinstance(device, FittedGP)
+    if tolerance is None:
+        if not gp:
+            raise InputError(
+                "a lookup-table (lut) model carries no uncertainty to set the table's "
+                f"tolerance by: give one, in {model.unit}"
+            )
+        u_min = float(np.min(device.predict(np.linspace(lo, hi, 2001), return_std=True)[1]))
+        tolerance = rtol * u_min
+    if not (np.isfinite(tolerance) and tolerance > 0):
+        raise InputError(
+            f"tolerance: expected a positive number of {model.unit}, got {tolerance!r}"
+        )
+    table = compensation_table(
+        device.predict if gp else device,
+        lo,
+        hi,
+        float(tolerance),
+        std=(lambda r: device.predict(r, return_std=True)[1]) if gp else None,
+        period=model.period,
+        extra=model.fitted.stages[-1].x,
+    )
+    if table is None:
+        raise InputError(
+            f"a table within {tolerance:.3g} {model.unit} needs more than {MAX_NODES} nodes; "
+            "give a larger tolerance"
+        )
+    return table
 
 
 @dataclass(frozen=True, slots=True)

@@ -43,7 +43,12 @@ FIT_CASES = {
     "periodic_without_period": (GOOD, ["--kernel", "periodic"], ["--period"]),
     "negative_period": (GOOD, ["--kernel", "periodic", "--period", "-3"], ["--period", "positive"]),
 }
-NO_FILE_NAMED = {"periodic_without_period", "negative_period"}
+NO_FILE_NAMED = {
+    "periodic_without_period",
+    "negative_period",
+    "export_bad_name",
+    "export_bad_tolerance",
+}
 
 
 def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[str, tuple]:
@@ -118,6 +123,18 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
         ["fit-devices", bad_tb, "--devices", files[0].parent, "-o", dest], dest, ["row 4"],
         bad_tb.name,
     )  # fmt: skip
+    # Compensation tables: a file type that is neither, a name C cannot take, a tolerance
+    # that is no positive number, an edited model.
+    for name, dest, extra, words in [
+        ("export_bad_suffix", tmp / "table.txt", [], ["table.txt", ".h (C header) or .csv"]),
+        ("export_bad_name", tmp / "t1.h", ["--name", "9lives"], ["C identifier", "'9lives'"]),
+        ("export_bad_tolerance", tmp / "t2.h", ["--tolerance=-1e-6"], ["positive number"]),
+    ]:
+        out[name] = (["export", model, "-o", dest, *extra], dest, words, dest.name)
+    dest = tmp / "t3.h"
+    out["export_edited_model"] = (
+        ["export", tmp / "model_edited.json", "-o", dest], dest, ["checksum"], "model_edited.json"
+    )  # fmt: skip
     # A study folder whose database is not one.
     folder = tmp / "study_corrupt"
     folder.mkdir()
@@ -154,6 +171,10 @@ ALL = [
     "report_edited_model",
     "fleet_bad_testbed",
     "study_corrupt_database",
+    "export_bad_suffix",
+    "export_bad_name",
+    "export_bad_tolerance",
+    "export_edited_model",
 ]
 
 

@@ -1,0 +1,134 @@
+"""Compensation tables for controllers: the correction on a uniform grid, linear in between.
+
+A controller corrects a reading ``r`` as ``r + c(r)``, with ``c`` interpolated linearly
+between the nodes of a uniform grid: one subtraction, one division, one truncation and one
+multiply-add per reading, no search and no exponentials. The grid spans the calibrated
+range (one period for a periodic model) with ``2^k + 1`` nodes, the coarsest whose
+interpolation error, measured against the exact correction at the quarter, half and
+three-quarter points of every interval and at given extra points (the data's readings,
+where a lookup-table model has its kinks), is within a tolerance.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["CompensationTable", "compensation_table"]
+
+#: Fewest intervals tried, and the most nodes a table may have (512 KiB of doubles).
+_START_INTERVALS = 16
+MAX_NODES = 2**16 + 1
+_FRACTIONS = np.array([0.25, 0.5, 0.75])
+
+
+@dataclass(frozen=True, slots=True)
+class CompensationTable:
+    """The correction ``corrected - reading`` at ``n`` equally spaced readings.
+
+    Attributes:
+        lo: First node, reading unit.
+        step: Node spacing, reading unit.
+        correction: Correction at the nodes, shape (n,), reading unit.
+        u: Standard uncertainty of the correction at the nodes, shape (n,), or None (a
+            lookup-table model has none).
+        period: Period of a periodic model (readings wrap onto ``[lo, lo + period)``), or
+            None.
+        tolerance: Interpolation error the table was built to, reading unit.
+        error: Largest interpolation error found at the check points, reading unit.
+        checked: Number of check points.
+    """
+
+    lo: float
+    step: float
+    correction: np.ndarray
+    u: np.ndarray | None
+    period: float | None
+    tolerance: float
+    error: float
+    checked: int
+
+    @property
+    def n(self) -> int:
+        """Number of nodes."""
+        return int(self.correction.size)
+
+    @property
+    def hi(self) -> float:
+        """Last node."""
+        return self.lo + self.step * (self.n - 1)
+
+    def nodes(self) -> np.ndarray:
+        """The readings at the nodes, shape (n,)."""
+        return self.lo + self.step * np.arange(self.n)
+
+    def __call__(self, readings: object) -> tuple[np.ndarray, np.ndarray]:
+        """Corrected readings and an outside-the-table flag, each shape (m,), computed with
+        the operations of the generated C function (so with the same doubles): outside
+        the table the nearest end's correction is held and the flag is set; a periodic
+        table wraps every reading onto its period."""
+        r = np.asarray(readings, dtype=float)
+        if self.period is not None:
+            t = np.fmod(r - self.lo, self.period)
+            t = np.where(t < 0.0, t + self.period, t) / self.step
+            outside = np.isnan(t)
+        else:
+            t = (r - self.lo) / self.step
+            outside = ~((t >= 0.0) & (t <= self.n - 1))
+        t = np.clip(np.nan_to_num(t, nan=0.0), 0.0, self.n - 1)
+        i = np.minimum(t.astype(np.int64), self.n - 2)
+        t = t - i
+        c = self.correction
+        return r + (c[i] + t * (c[i + 1] - c[i])), outside
+
+
+def compensation_table(
+    correct: Callable[[np.ndarray], np.ndarray],
+    lo: float,
+    hi: float,
+    tolerance: float,
+    *,
+    std: Callable[[np.ndarray], np.ndarray] | None = None,
+    period: float | None = None,
+    extra: np.ndarray | None = None,
+    max_nodes: int = MAX_NODES,
+) -> CompensationTable | None:
+    """The coarsest table of ``correct`` on ``[lo, hi]`` within ``tolerance``, or None if
+    more than ``max_nodes`` nodes would be needed.
+
+    Args:
+        correct: Corrected readings at readings (m,) -> (m,), the exact model.
+        lo, hi: Calibrated range, ``lo < hi`` (for a periodic model, ``hi = lo + period``).
+        tolerance: Largest interpolation error allowed, reading unit, > 0.
+        std: Standard uncertainty at readings (m,) -> (m,), tabulated alongside if given.
+        period: Period of a periodic model, or None.
+        extra: Further readings inside ``[lo, hi]`` to check the error at, shape (k,).
+        max_nodes: Most nodes tried.
+    """
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+        raise ValueError(f"compensation_table: expected finite lo < hi, got {lo!r}, {hi!r}")
+    if not (math.isfinite(tolerance) and tolerance > 0.0):
+        raise ValueError(f"compensation_table: expected a tolerance > 0, got {tolerance!r}")
+    extra = np.zeros(0) if extra is None else np.asarray(extra, dtype=float)
+    extra = extra[(extra >= lo) & (extra <= hi)]
+    intervals = _START_INTERVALS
+    while intervals + 1 <= max_nodes:
+        step = (hi - lo) / intervals
+        nodes = lo + step * np.arange(intervals + 1)
+        checks = np.concatenate([(nodes[:-1, None] + step * _FRACTIONS).ravel(), extra])
+        corrected = correct(np.concatenate([nodes, checks]))
+        table = CompensationTable(
+            lo, step, corrected[: nodes.size] - nodes, None, period, tolerance, 0.0, checks.size
+        )
+        exact = corrected[nodes.size :]
+        error = float(np.max(np.abs(table(checks)[0] - exact)))
+        if error <= tolerance:
+            u = None if std is None else np.asarray(std(nodes), dtype=float)
+            return CompensationTable(
+                lo, step, table.correction, u, period, tolerance, error, checks.size
+            )
+        intervals *= 2
+    return None

@@ -1,0 +1,112 @@
+"""A compensation table as text: a C header for controller firmware, or CSV.
+
+Every number is written with the shortest decimal that reads back as the same double
+(Python's ``repr``), so the header's table, compiled, holds exactly the library's values,
+and its correction function does the same operations as
+:meth:`cascal.compensation.CompensationTable.__call__`.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from ..compensation import CompensationTable
+from ..errors import InputError
+
+__all__ = ["c_header", "c_identifier", "table_csv"]
+
+_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def c_identifier(name: str) -> str:
+    """``name`` checked as a C identifier (letters, digits, underscores; no leading digit)."""
+    if not _IDENTIFIER.fullmatch(name):
+        raise InputError(f"--name: expected a C identifier (letters, digits, _), got {name!r}")
+    return name
+
+
+def _numbers(values: np.ndarray, per_line: int = 4) -> str:
+    text = [repr(float(v)) for v in values]
+    lines = [", ".join(text[i : i + per_line]) for i in range(0, len(text), per_line)]
+    return ",\n".join(f"    {line}" for line in lines)
+
+
+def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
+    """A self-contained C99 header: the table and ``int NAME_correct(double reading,
+    double *corrected)``, which returns 0 inside the table (any reading, for a periodic
+    one) and 1 outside it, where the nearest end's correction is held.
+
+    Args:
+        table: The compensation table.
+        name: Prefix of every identifier, a C identifier.
+        about: Lines for the header's opening comment (provenance, unit, tolerance); a
+            ``*/`` and ``/*`` in them are broken up, so the comment cannot end early.
+    """
+    p, guard = c_identifier(name), f"{name.upper()}_H"
+    safe = [line.replace("*/", "* /").replace("/*", "/ *") for line in about]
+    intro = "\n".join(f" * {line}".rstrip() for line in safe)
+    if table.period is not None:
+        reduce = (
+            f"    double t = fmod(reading - {p}_LO, {p}_PERIOD);\n"
+            f"    int status = isnan(t) ? 1 : 0;\n"
+            f"    if (t < 0.0) t += {p}_PERIOD;\n"
+            f"    t /= {p}_STEP;\n"
+            f"    if (!(t >= 0.0)) t = 0.0;\n"
+            f"    else if (t > {p}_N - 1) t = {p}_N - 1;\n"
+        )
+        extra = f"static const double {p}_PERIOD = {table.period!r};\n"
+        include = "#include <math.h>\n\n"
+    else:
+        reduce = (
+            f"    double t = (reading - {p}_LO) / {p}_STEP;\n"
+            f"    int status = 0;\n"
+            f"    if (!(t >= 0.0)) {{ t = 0.0; status = 1; }} /* below the table, or NaN */\n"
+            f"    else if (t > {p}_N - 1) {{ t = {p}_N - 1; status = 1; }}\n"
+        )
+        extra, include = "", ""
+    return f"""/*
+{intro}
+ *
+ * corrected = reading + correction(reading), the correction interpolated linearly between
+ * {table.n} equally spaced readings from {p}_LO in steps of {p}_STEP.
+ */
+#ifndef {guard}
+#define {guard}
+
+{include}#define {p}_N {table.n}
+
+static const double {p}_LO = {table.lo!r};
+static const double {p}_STEP = {table.step!r};
+{extra}
+static const double {p}_CORRECTION[{p}_N] = {{
+{_numbers(table.correction)}
+}};
+
+/* Corrected reading of a device reading. Returns 0 inside the table, 1 outside it (the
+ * nearest end's correction is then held: the reading is outside the calibrated range). */
+static inline int {p}_correct(double reading, double *corrected)
+{{
+{reduce}    long i = (long)t;
+    if (i > {p}_N - 2) i = {p}_N - 2;
+    t -= (double)i;
+    *corrected = reading + ({p}_CORRECTION[i] + t * ({p}_CORRECTION[i + 1] - {p}_CORRECTION[i]));
+    return status;
+}}
+
+#endif /* {guard} */
+"""
+
+
+def table_csv(table: CompensationTable) -> str:
+    """CSV text: ``reading,correction,corrected`` (and ``u`` where the model has one) at
+    every node, each number as the shortest decimal that reads back as the same double."""
+    x = table.nodes()
+    cols = [x, table.correction, x + table.correction]
+    head = ["reading", "correction", "corrected"]
+    if table.u is not None:
+        cols.append(table.u)
+        head.append("u")
+    rows = (",".join(repr(float(v)) for v in row) for row in zip(*cols, strict=True))
+    return ",".join(head) + "\n" + "\n".join(rows) + "\n"

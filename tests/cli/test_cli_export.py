@@ -1,0 +1,35 @@
+"""``cascal export``: compensation tables through the installed command."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+from cli_helpers import run_cascal
+
+from cascal.io.modelfile import load_model
+from cascal.workflow import compensation
+
+
+def test_header_and_csv_hold_the_library_table(linear_model, tmp_path):
+    """The CSV's nodes and corrections are the library's table to the last bit; the header
+    carries the same numbers, its provenance and the error found; the command says where
+    the table went and how good it is."""
+    table = compensation(load_model(linear_model))
+    res = run_cascal("export", linear_model, "-o", tmp_path / "axis-1.csv")
+    assert res.returncode == 0, res.stderr
+    assert f"{table.n} nodes" in res.stdout and "largest interpolation error" in res.stdout
+    rows = np.loadtxt(tmp_path / "axis-1.csv", delimiter=",", skiprows=1)
+    assert np.array_equal(rows[:, 0], table.nodes())
+    assert np.array_equal(rows[:, 1], table.correction)
+    assert np.array_equal(rows[:, 3], table.u)
+    res = run_cascal("export", linear_model, "-o", tmp_path / "axis-1.h")
+    assert res.returncode == 0, res.stderr
+    text = (tmp_path / "axis-1.h").read_text()
+    assert "int axis_1_correct(double reading, double *corrected)" in text  # name from file
+    assert f"#define axis_1_N {table.n}" in text and linear_model.name in text
+    assert repr(float(table.correction[7])) in text and f"{table.error:.3g}" in text
+    res = run_cascal("export", linear_model, "-o", tmp_path / "t.h", "--tolerance", "1e-4")
+    assert res.returncode == 0, res.stderr
+    loose = re.search(r"#define t_N (\d+)\n", (tmp_path / "t.h").read_text())
+    assert int(loose.group(1)) < table.n  # a looser tolerance, a smaller table

@@ -1,0 +1,151 @@
+"""Compensation tables: error against the exact correction, the grid chosen, wrap-around,
+the generated C against the library's arithmetic (compiled with the machine's C compiler)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cascal.compensation import compensation_table
+from cascal.errors import InputError
+from cascal.io.ctable import c_header, c_identifier, table_csv
+from cascal.workflow import compensation, correct, fit_model
+from utils import demo_stages
+
+
+def _smooth(a: float, w: float):
+    return lambda x: x + a * np.sin(w * x) + 0.3 * a * np.cos(2.7 * w * x)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.floats(1e-4, 1e-1), st.floats(0.5, 30.0), st.integers(4, 14), st.floats(0.2, 1.0))
+def test_error_within_tolerance_and_grid_is_the_coarsest(a, w, k, q):
+    """Against the exact map on 20 000 random readings the table is within 1.2 times the
+    tolerance (it is checked at 3 points an interval, where a smooth map's linear
+    interpolation error peaks near the middle), and the grid with half the intervals is
+    not within the tolerance at its own check points. The tolerance is a fraction ``q`` of
+    the error bound ``max|f''| h^2 / 8`` of 2^k intervals, so at most 2^(k+1) are needed."""
+    f = _smooth(a, w)
+    tol = q * a * (w**2 + 0.3 * (2.7 * w) ** 2) / 8.0 / 4.0**k
+    table = compensation_table(f, 0.0, 1.0, tol)
+    assert table is not None and table.error <= tol
+    r = np.random.default_rng(0).uniform(0.0, 1.0, 20000)
+    got, outside = table(r)
+    assert not outside.any()
+    assert np.max(np.abs(got - f(r))) <= 1.2 * tol
+    assert np.array_equal(table(table.nodes())[0], table.nodes() + table.correction)
+    if table.n > 17:
+        coarse = compensation_table(f, 0.0, 1.0, tol, max_nodes=(table.n - 1) // 2 + 1)
+        assert coarse is None
+
+
+def test_kinks_are_checked():
+    """A piecewise-linear map's interpolation error is largest at its kinks; with the kinks
+    as extra check points, no reading is off by more than the tolerance."""
+    knots = np.sort(np.random.default_rng(1).uniform(0.0, 1.0, 40))
+    offsets = np.random.default_rng(2).normal(0.0, 1e-5, 40)
+
+    def f(x):
+        return x + np.interp(x, knots, offsets)
+
+    table = compensation_table(f, 0.0, 1.0, 1e-6, extra=knots)
+    r = np.concatenate([np.random.default_rng(3).uniform(0.0, 1.0, 50000), knots])
+    assert np.max(np.abs(table(r)[0] - f(r))) <= 1e-6
+    assert table.checked == 3 * (table.n - 1) + knots.size
+
+
+def test_outside_and_periodic_readings():
+    f = _smooth(1e-3, 3.0)
+    table = compensation_table(f, 0.0, 1.0, 1e-7)
+    got, outside = table(np.array([-0.5, 0.0, 1.0, 1.5, np.nan]))
+    assert outside.tolist() == [True, False, False, True, True]
+    c = table.correction
+    assert got[0] == -0.5 + c[0] and got[3] == 1.5 + c[-1]  # the end corrections held
+    deg = compensation_table(
+        lambda x: x + 0.01 * np.sin(np.deg2rad(x)), 0.0, 360.0, 1e-7, period=360.0
+    )
+    x = np.array([10.0, 200.0, 359.9])
+    for turns in (-2, 1, 3):
+        wrapped, outside = deg(x + 360.0 * turns)
+        assert not outside.any()
+        np.testing.assert_allclose(wrapped - 360.0 * turns, deg(x)[0], rtol=0, atol=1e-9)
+
+
+def test_model_tables():
+    """The bayes model's table against exact correction (default tolerance: a tenth of the
+    smallest u); the lut model's needs a tolerance and meets it everywhere (its kinks are
+    checked)."""
+    stages = demo_stages()
+    bayes, lut = (fit_model(stages, method=m, n_restarts=1) for m in ("bayes", "lut"))
+    table = compensation(bayes)
+    lo, hi = bayes.calibrated_range
+    r = np.random.default_rng(0).uniform(lo, hi, 20000)
+    exact = correct(bayes, r)
+    assert table.tolerance == pytest.approx(0.1 * np.min(exact.u), rel=0.05)
+    assert np.max(np.abs(table(r)[0] - exact.corrected)) <= 1.2 * table.tolerance
+    np.testing.assert_allclose(table.u, correct(bayes, table.nodes()).u, rtol=1e-12)
+    with pytest.raises(InputError, match="lookup-table"):
+        compensation(lut)
+    lt = compensation(lut, 1e-5)
+    r = np.concatenate([r, lut.fitted.device.knots])
+    assert np.max(np.abs(lt(r)[0] - correct(lut, r).corrected)) <= 1e-5
+    with pytest.raises(InputError, match="more than"):
+        compensation(lut, 1e-13)
+    lines = table_csv(lt).splitlines()
+    assert lines[0] == "reading,correction,corrected" and len(lines) == lt.n + 1
+    assert [float(v) for v in lines[1].split(",")][1] == lt.correction[0]  # exact round trip
+
+
+def test_c_identifiers():
+    assert c_identifier("device_7") == "device_7"
+    for bad in ("7device", "dev-ice", "", "dé"):
+        with pytest.raises(InputError, match="C identifier"):
+            c_identifier(bad)
+
+
+_MAIN = """
+#include <stdio.h>
+#include "table.h"
+int main(void)
+{
+    double r, c;
+    while (scanf("%lf", &r) == 1) {
+        int status = NAME_correct(r, &c);
+        printf("%d %.17g\\n", status, c);
+    }
+    return 0;
+}
+"""
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="needs a C compiler")
+@pytest.mark.parametrize("periodic", [False, True])
+def test_generated_c_matches_the_library(tmp_path, periodic):
+    """The header compiles warning-free as C99 and corrects every reading (inside, at the
+    ends, outside, NaN) to the same double as the library's table, with the same flag."""
+    if periodic:
+        period = 360.0
+        table = compensation_table(
+            lambda x: x + 0.02 * np.sin(np.deg2rad(x)), 0.0, period, 1e-7, period=period
+        )
+        r = np.array([0.0, 0.1, 359.99, 360.0, 725.3, -10.0, np.nan])
+    else:
+        table = compensation_table(_smooth(1e-3, 4.0), 0.1, 0.9, 1e-8)
+        r = np.concatenate([np.random.default_rng(0).uniform(0.0, 1.0, 500), [0.1, 0.9, np.nan]])
+    (tmp_path / "table.h").write_text(c_header(table, "NAME", ["unit */ int x = 1; /*"]))
+    (tmp_path / "main.c").write_text(_MAIN)
+    exe = tmp_path / "main"
+    cmd = ["cc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-o", exe, "main.c", "-lm"]
+    subprocess.run(cmd, cwd=tmp_path, check=True, capture_output=True)
+    text = "\n".join("nan" if np.isnan(v) else repr(float(v)) for v in r)
+    out = subprocess.run([exe], input=text, capture_output=True, text=True, check=True).stdout
+    status, corrected = zip(*(line.split() for line in out.splitlines()), strict=True)
+    want, outside = table(r)
+    assert [int(s) for s in status] == outside.astype(int).tolist()
+    got = np.array([float(v) for v in corrected])
+    assert np.array_equal(got, want, equal_nan=True)
