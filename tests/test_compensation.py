@@ -127,16 +127,18 @@ int main(void)
 @pytest.mark.parametrize("periodic", [False, True])
 def test_generated_c_matches_the_library(tmp_path, periodic):
     """The header compiles warning-free as C99 and corrects every reading (inside, at the
-    ends, outside, NaN) to the same double as the library's table, with the same flag."""
+    ends, outside, huge, infinite, NaN) to the same double as the library's table, with the
+    same flag."""
     if periodic:
         period = 360.0
         table = compensation_table(
             lambda x: x + 0.02 * np.sin(np.deg2rad(x)), 0.0, period, 1e-7, period=period
         )
-        r = np.array([0.0, 0.1, 359.99, 360.0, 725.3, -10.0, np.nan])
+        r = np.array([0.0, 0.1, 359.99, 360.0, 725.3, -10.0, 1e300, np.nan, np.inf, -np.inf])
     else:
         table = compensation_table(_smooth(1e-3, 4.0), 0.1, 0.9, 1e-8)
-        r = np.concatenate([np.random.default_rng(0).uniform(0.0, 1.0, 500), [0.1, 0.9, np.nan]])
+        ends = [0.1, 0.9, np.nan, np.inf, -np.inf, 1e300, -1e300]
+        r = np.concatenate([np.random.default_rng(0).uniform(0.0, 1.0, 500), ends])
     (tmp_path / "table.h").write_text(c_header(table, "NAME", ["unit */ int x = 1; /*"]))
     (tmp_path / "main.c").write_text(_MAIN)
     exe = tmp_path / "main"

@@ -71,13 +71,14 @@ class CompensationTable:
         the table the nearest end's correction is held and the flag is set; a periodic
         table wraps every reading onto its period."""
         r = np.asarray(readings, dtype=float)
-        if self.period is not None:
-            t = np.fmod(r - self.lo, self.period)
-            t = np.where(t < 0.0, t + self.period, t) / self.step
-            outside = np.isnan(t)
-        else:
-            t = (r - self.lo) / self.step
-            outside = ~((t >= 0.0) & (t <= self.n - 1))
+        with np.errstate(invalid="ignore"):  # inf and NaN readings: flagged, as in C
+            if self.period is not None:
+                t = np.fmod(r - self.lo, self.period)
+                t = np.where(t < 0.0, t + self.period, t) / self.step
+                outside = np.isnan(t)
+            else:
+                t = (r - self.lo) / self.step
+                outside = ~((t >= 0.0) & (t <= self.n - 1))
         t = np.clip(np.nan_to_num(t, nan=0.0), 0.0, self.n - 1)
         i = np.minimum(t.astype(np.int64), self.n - 2)
         t = t - i
