@@ -56,7 +56,24 @@ def test_kinks_are_checked():
     table = compensation_table(f, 0.0, 1.0, 1e-6, extra=knots)
     r = np.concatenate([np.random.default_rng(3).uniform(0.0, 1.0, 50000), knots])
     assert np.max(np.abs(table(r)[0] - f(r))) <= 1e-6
-    assert table.checked == 3 * (table.n - 1) + knots.size
+    assert table.checked == 4 * (table.n - 1) + knots.size
+
+
+def test_errors_at_the_grid_frequency_are_seen():
+    """A periodic error whose period divides the node spacing vanishes at the quarter,
+    half and three-quarter points of every interval, not at the golden-ratio points."""
+    f = lambda x: x + 1e-3 * np.sin(2 * np.pi * 32 * x)  # noqa: E731
+    table = compensation_table(f, 0.0, 1.0, 1e-6)
+    assert table.n > 257
+    r = np.random.default_rng(0).uniform(0.0, 1.0, 20000)
+    assert np.max(np.abs(table(r)[0] - f(r))) <= 1.2e-6
+
+
+def test_range_flag_uses_the_exact_ends():
+    """The last node may round past the range's end; the flag uses the end itself."""
+    table = compensation_table(lambda x: x + 1e-3 * np.sin(x / 100), -1000.3, 0.1, 1e-3)
+    assert table.hi == 0.1 and table.lo + table.step * (table.n - 1) > 0.1
+    assert table(np.array([0.1, np.nextafter(0.1, 1.0)]))[1].tolist() == [False, True]
 
 
 def test_outside_and_periodic_readings():
@@ -103,7 +120,7 @@ def test_model_tables():
 
 def test_c_identifiers():
     assert c_identifier("device_7") == "device_7"
-    for bad in ("7device", "dev-ice", "", "dé"):
+    for bad in ("7device", "dev-ice", "", "dé", "_x", "__x"):
         with pytest.raises(InputError, match="C identifier"):
             c_identifier(bad)
 

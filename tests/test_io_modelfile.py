@@ -258,3 +258,18 @@ def test_atomic_write_gives_the_usual_permissions(tmp_path):
     # what open() would give a new file under the process umask, not mkstemp's 0600
     assert (path.stat().st_mode & 0o777) == 0o666 & ~atomic._UMASK
     assert [p.name for p in tmp_path.iterdir()] == ["a.txt"]  # no temporary left behind
+
+
+def test_atomic_write_names_the_file_it_could_not_write(tmp_path):
+    """A destination that is a folder, or under a file: the error names the destination
+    (not the temporary file), and nothing is left behind."""
+    from cascal.io import atomic
+
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "plain").write_text("x")
+    for dest in (tmp_path / "taken", tmp_path / "plain" / "under.txt"):
+        with pytest.raises(OSError, match=f"cannot write {dest}: ") as info:
+            atomic.write_text(dest, "y")
+        assert info.value.errno is not None
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plain", "taken"]
+    assert not any((tmp_path / "taken").iterdir())

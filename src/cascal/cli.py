@@ -405,7 +405,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"cascal {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except OSError as exc:
-        print(f"cascal {args.command}: error: {exc}", file=sys.stderr)
+        text = exc.strerror if exc.filename is None and exc.strerror else exc
+        print(f"cascal {args.command}: error: {text}", file=sys.stderr)
         return EXIT_FAILURE
     except KeyboardInterrupt:
         print(f"cascal {args.command}: interrupted", file=sys.stderr)

@@ -22,9 +22,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
         raise InputError(f"--tolerance: expected a positive number, got {args.tolerance!r}")
     if out.suffix not in (".h", ".csv"):
         raise InputError(f"-o {out}: expected a .h (C header) or .csv file name")
-    name = args.name or _identifier(out.stem)
-    if out.suffix == ".h":
-        c_identifier(name)
+    if args.name is not None and out.suffix != ".h":
+        raise InputError(f"--name: names the identifiers of a C header; -o {out} is CSV")
+    name = _identifier(out.stem) if args.name is None else c_identifier(args.name)
     model = load_model(args.model)
     table = compensation(model, args.tolerance)
     unit = model.unit
@@ -53,10 +53,10 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _identifier(stem: str) -> str:
-    """A C identifier from a file stem: other characters become ``_``, and a leading digit
-    gets one in front."""
+    """A prefix of C identifiers from a file stem: other characters become ``_``, and one
+    that does not start with a letter gets ``table_`` in front."""
     name = re.sub(r"[^A-Za-z0-9_]", "_", stem)
-    return name if name[:1].isalpha() or name[:1] == "_" else f"_{name}"
+    return name if name[:1].isalpha() else f"table_{name}"
 
 
 def _checksum(path: str) -> str:

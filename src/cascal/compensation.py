@@ -2,11 +2,13 @@
 
 A controller corrects a reading ``r`` as ``r + c(r)``, with ``c`` interpolated linearly
 between the nodes of a uniform grid: one subtraction, one division, one truncation and one
-multiply-add per reading, no search and no exponentials. The grid spans the calibrated
-range (one period for a periodic model) with ``2^k + 1`` nodes, the coarsest whose
-interpolation error, measured against the exact correction at the quarter, half and
-three-quarter points of every interval and at given extra points (the data's readings,
-where a lookup-table model has its kinks), is within a tolerance.
+multiply-add per reading (and a ``fmod`` on a periodic table), no search and no
+exponentials. The grid spans the calibrated range (one period for a periodic model) with
+``2^k + 1`` nodes, ``k >= 4``, the coarsest whose interpolation error, measured against the
+exact correction at check points, is within a tolerance. The check points of interval
+``j`` are at the fractions 1/4, 1/2, 3/4 and ``frac((j + 1) phi)`` of it (``phi`` the golden
+ratio: no periodic error whose period divides the spacing vanishes at all of them), and at
+given extra points (the data's readings, where a lookup-table model has its kinks).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ __all__ = ["CompensationTable", "compensation_table"]
 _START_INTERVALS = 16
 MAX_NODES = 2**16 + 1
 _FRACTIONS = np.array([0.25, 0.5, 0.75])
+_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -30,7 +33,9 @@ class CompensationTable:
     """The correction ``corrected - reading`` at ``n`` equally spaced readings.
 
     Attributes:
-        lo: First node, reading unit.
+        lo: First node and start of the range, reading unit.
+        hi: End of the range (the last node up to rounding), reading unit; readings
+            outside ``[lo, hi]`` are flagged (not those of a periodic table).
         step: Node spacing, reading unit.
         correction: Correction at the nodes, shape (n,), reading unit.
         u: Standard uncertainty of the correction at the nodes, shape (n,), or None (a
@@ -43,6 +48,7 @@ class CompensationTable:
     """
 
     lo: float
+    hi: float
     step: float
     correction: np.ndarray
     u: np.ndarray | None
@@ -56,11 +62,6 @@ class CompensationTable:
         """Number of nodes."""
         return int(self.correction.size)
 
-    @property
-    def hi(self) -> float:
-        """Last node."""
-        return self.lo + self.step * (self.n - 1)
-
     def nodes(self) -> np.ndarray:
         """The readings at the nodes, shape (n,)."""
         return self.lo + self.step * np.arange(self.n)
@@ -71,14 +72,14 @@ class CompensationTable:
         the table the nearest end's correction is held and the flag is set; a periodic
         table wraps every reading onto its period."""
         r = np.asarray(readings, dtype=float)
-        with np.errstate(invalid="ignore"):  # inf and NaN readings: flagged, as in C
+        with np.errstate(invalid="ignore", over="ignore"):  # huge, inf, NaN: as in C
             if self.period is not None:
                 t = np.fmod(r - self.lo, self.period)
                 t = np.where(t < 0.0, t + self.period, t) / self.step
                 outside = np.isnan(t)
             else:
                 t = (r - self.lo) / self.step
-                outside = ~((t >= 0.0) & (t <= self.n - 1))
+                outside = ~((r >= self.lo) & (r <= self.hi))
         t = np.clip(np.nan_to_num(t, nan=0.0), 0.0, self.n - 1)
         i = np.minimum(t.astype(np.int64), self.n - 2)
         t = t - i
@@ -119,17 +120,20 @@ def compensation_table(
     while intervals + 1 <= max_nodes:
         step = (hi - lo) / intervals
         nodes = lo + step * np.arange(intervals + 1)
-        checks = np.concatenate([(nodes[:-1, None] + step * _FRACTIONS).ravel(), extra])
+        golden = np.mod(_GOLDEN * np.arange(1, intervals + 1), 1.0)[:, None]
+        fractions = np.hstack([np.broadcast_to(_FRACTIONS, (intervals, 3)), golden])
+        checks = np.concatenate([(nodes[:-1, None] + step * fractions).ravel(), extra])
         corrected = correct(np.concatenate([nodes, checks]))
+        correction = corrected[: nodes.size] - nodes
         table = CompensationTable(
-            lo, step, corrected[: nodes.size] - nodes, None, period, tolerance, 0.0, checks.size
+            lo, hi, step, correction, None, period, tolerance, 0.0, checks.size
         )
         exact = corrected[nodes.size :]
         error = float(np.max(np.abs(table(checks)[0] - exact)))
         if error <= tolerance:
             u = None if std is None else np.asarray(std(nodes), dtype=float)
             return CompensationTable(
-                lo, step, table.correction, u, period, tolerance, error, checks.size
+                lo, hi, step, correction, u, period, tolerance, error, checks.size
             )
         intervals *= 2
     return None

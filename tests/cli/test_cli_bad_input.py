@@ -129,6 +129,7 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
         ("export_bad_suffix", tmp / "table.txt", [], ["table.txt", ".h (C header) or .csv"]),
         ("export_bad_name", tmp / "t1.h", ["--name", "9lives"], ["C identifier", "'9lives'"]),
         ("export_bad_tolerance", tmp / "t2.h", ["--tolerance=-1e-6"], ["positive number"]),
+        ("export_name_for_csv", tmp / "t4.csv", ["--name", "axis"], ["--name", "C header"]),
     ]:
         out[name] = (["export", model, "-o", dest, *extra], dest, words, dest.name)
     dest = tmp / "t3.h"
@@ -175,6 +176,7 @@ ALL = [
     "export_bad_name",
     "export_bad_tolerance",
     "export_edited_model",
+    "export_name_for_csv",
 ]
 
 

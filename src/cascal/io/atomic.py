@@ -27,8 +27,11 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
         write: Writes the whole content to the temporary path it is given.
     """
     dest = Path(path)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    try:
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    except OSError as exc:
+        raise OSError(exc.errno, f"cannot write {dest}: {exc.strerror}") from None
     os.close(fd)
     try:
         write(tmp)
@@ -36,9 +39,11 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())  # the content is on disk before the name points at it
         os.replace(tmp, dest)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.filename in (tmp, str(dest)):
+            raise OSError(exc.errno, f"cannot write {dest}: {exc.strerror}") from None
         raise
     return dest
 

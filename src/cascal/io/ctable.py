@@ -3,7 +3,8 @@
 Every number is written with the shortest decimal that reads back as the same double
 (Python's ``repr``), so the header's table, compiled, holds exactly the library's values,
 and its correction function does the same operations as
-:meth:`cascal.compensation.CompensationTable.__call__`.
+:meth:`cascal.compensation.CompensationTable.__call__`: compiled as ISO C (no contraction
+of a multiply and an add into one rounding), it gives the same doubles.
 """
 
 from __future__ import annotations
@@ -17,13 +18,17 @@ from ..errors import InputError
 
 __all__ = ["c_header", "c_identifier", "table_csv"]
 
-_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_IDENTIFIER = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 
 
 def c_identifier(name: str) -> str:
-    """``name`` checked as a C identifier (letters, digits, underscores; no leading digit)."""
+    """``name`` checked as the prefix of C identifiers: a letter, then letters, digits and
+    underscores (a leading underscore would make reserved names)."""
     if not _IDENTIFIER.fullmatch(name):
-        raise InputError(f"--name: expected a C identifier (letters, digits, _), got {name!r}")
+        raise InputError(
+            f"--name: expected a C identifier starting with a letter (then letters, digits, "
+            f"_), got {name!r}"
+        )
     return name
 
 
@@ -44,13 +49,13 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
         about: Lines for the header's opening comment (provenance, unit, tolerance); a
             ``*/`` and ``/*`` in them are broken up, so the comment cannot end early.
     """
-    p, guard = c_identifier(name), f"{name.upper()}_H"
+    p, guard = c_identifier(name), f"CASCAL_TABLE_{name}_H"
     safe = [line.replace("*/", "* /").replace("/*", "/ *") for line in about]
     intro = "\n".join(f" * {line}".rstrip() for line in safe)
     if table.period is not None:
         reduce = (
             f"    double t = fmod(reading - {p}_LO, {p}_PERIOD);\n"
-            f"    int status = isnan(t) ? 1 : 0;\n"
+            f"    int status = isnan(t) ? 1 : 0; /* an infinite or NaN reading */\n"
             f"    if (t < 0.0) t += {p}_PERIOD;\n"
             f"    t /= {p}_STEP;\n"
             f"    if (!(t >= 0.0)) t = 0.0;\n"
@@ -61,16 +66,20 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
     else:
         reduce = (
             f"    double t = (reading - {p}_LO) / {p}_STEP;\n"
-            f"    int status = 0;\n"
-            f"    if (!(t >= 0.0)) {{ t = 0.0; status = 1; }} /* below the table, or NaN */\n"
-            f"    else if (t > {p}_N - 1) {{ t = {p}_N - 1; status = 1; }}\n"
+            f"    int status = reading >= {p}_LO && reading <= {p}_HI ? 0 : 1; /* or NaN */\n"
+            f"    if (!(t >= 0.0)) t = 0.0;\n"
+            f"    else if (t > {p}_N - 1) t = {p}_N - 1;\n"
         )
-        extra, include = "", ""
+        extra, include = f"static const double {p}_HI = {table.hi!r};\n", ""
     return f"""/*
 {intro}
  *
  * corrected = reading + correction(reading), the correction interpolated linearly between
  * {table.n} equally spaced readings from {p}_LO in steps of {p}_STEP.
+ * Compiled as ISO C (e.g. -std=c99, or with -ffp-contract=off: no fused multiply-add),
+ * {p}_correct gives cascal's doubles to the last bit; with contraction, within one rounding.
+ * Infinite and NaN readings need IEEE arithmetic: not with -ffast-math or
+ * -ffinite-math-only.
  */
 #ifndef {guard}
 #define {guard}
@@ -84,8 +93,8 @@ static const double {p}_CORRECTION[{p}_N] = {{
 {_numbers(table.correction)}
 }};
 
-/* Corrected reading of a device reading. Returns 0 inside the table, 1 outside it (the
- * nearest end's correction is then held: the reading is outside the calibrated range). */
+/* Corrected reading of a device reading. Returns 0 inside the calibrated range, 1 outside
+ * it or for a NaN reading (the nearest end's correction is then held). */
 static inline int {p}_correct(double reading, double *corrected)
 {{
 {reduce}    long i = (long)t;
