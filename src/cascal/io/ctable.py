@@ -71,6 +71,12 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
             f"    else if (t > {p}_N - 1) t = {p}_N - 1;\n"
         )
         extra, include = f"static const double {p}_HI = {table.hi!r};\n", ""
+    returns = (
+        "Returns 0, or 1 for an infinite or NaN reading."
+        if table.period is not None
+        else "Returns 0 inside the calibrated range, 1 outside\n * it or for a NaN reading "
+        "(the nearest end's correction is then held)."
+    )
     return f"""/*
 {intro}
  *
@@ -93,8 +99,7 @@ static const double {p}_CORRECTION[{p}_N] = {{
 {_numbers(table.correction)}
 }};
 
-/* Corrected reading of a device reading. Returns 0 inside the calibrated range, 1 outside
- * it or for a NaN reading (the nearest end's correction is then held). */
+/* Corrected reading of a device reading. {returns} */
 static inline int {p}_correct(double reading, double *corrected)
 {{
 {reduce}    long i = (long)t;
