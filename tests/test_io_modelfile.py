@@ -273,3 +273,27 @@ def test_atomic_write_names_the_file_it_could_not_write(tmp_path):
         assert info.value.errno is not None
     assert sorted(p.name for p in tmp_path.iterdir()) == ["plain", "taken"]
     assert not any((tmp_path / "taken").iterdir())
+
+
+def test_atomic_write_keeps_links_and_writes_pipes_in_place(tmp_path):
+    """A symbolic link keeps pointing at the (replaced) target; a named pipe is written
+    through, not replaced by a regular file."""
+    import os
+    import threading
+
+    from cascal.io import atomic
+
+    target = tmp_path / "target.txt"
+    target.write_text("old")
+    link = tmp_path / "link.txt"
+    link.symlink_to(target)
+    atomic.write_text(link, "new")
+    assert link.is_symlink() and target.read_text() == "new"
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    got = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_text()))
+    reader.start()
+    atomic.write_text(fifo, "through the pipe")
+    reader.join(timeout=10)
+    assert got == ["through the pipe"] and fifo.is_fifo()

@@ -95,8 +95,25 @@ def _study_then(*statements):
         ),
         (_study_then("ALTER TABLE trials ADD COLUMN extra"), "has trial columns"),
         (_study_then("UPDATE trials SET fits='[1' WHERE idx=1"), "unreadable record of trial 1"),
+        (_study_then("UPDATE trials SET redraws='abc' WHERE idx=1"), "record of trial 1"),
+        (_study_then("""UPDATE trials SET fits='{"stage0": [1]}' WHERE idx=0"""), "of trial 0"),
+        (_study_then("""UPDATE trials SET seconds='{"a": "slow"}' WHERE idx=1"""), "of trial 1"),
+        (_study_then("UPDATE trials SET j_bayes=9e999 WHERE idx=0"), "record of trial 0"),
+        (_study_then("UPDATE trials SET idx=-5 WHERE idx=0"), "record of trial -5"),
     ],
-    ids=["not_sqlite", "foreign_tables", "bad_config", "newer_schema", "columns", "bad_record"],
+    ids=[
+        "not_sqlite",
+        "foreign_tables",
+        "bad_config",
+        "newer_schema",
+        "columns",
+        "bad_json",
+        "bad_redraws",
+        "bad_fits",
+        "bad_seconds",
+        "infinite_J",
+        "negative_index",
+    ],
 )
 def test_damaged_database_is_refused_untouched(tmp_path, damage, words):
     """A study.sqlite that is not, or no longer, a readable study of this schema is refused

@@ -293,10 +293,23 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
         metavar="NAME",
         help="column of the more accurate sensor (once, or once per file)",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the optimiser's starts (default 0)")
+    p.add_argument(
+        "--seed", type=seed, default=0, help="seed of the optimiser's starts (default 0)"
+    )
     p.add_argument(
         "--restarts", type=positive_int, default=5, help="optimiser starts per stage (default 5)"
     )
+
+
+def seed(text: str) -> int:
+    """argparse type: a seed, a whole number of at least 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a seed >= 0, got {value}")
+    return value
 
 
 def positive_int(text: str) -> int:
@@ -317,7 +330,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"cascal {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     ex = sub.add_parser("example", help="simulate one cascade as in the paper and fit it")
-    ex.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    ex.add_argument("--seed", type=seed, default=0, help="random seed (default 0)")
     ex.add_argument("--out", default="out", help="output folder (default out/)")
     ex.set_defaults(func=_cmd_example)
 
@@ -384,7 +397,7 @@ def _parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser("demo", help="simulate example files, then fit, correct and report them")
     demo.add_argument("--out", default="out", help="output folder (default out/)")
-    demo.add_argument("--seed", type=int, default=0, help="seed of the simulation (default 0)")
+    demo.add_argument("--seed", type=seed, default=0, help="seed of the simulation (default 0)")
     demo.set_defaults(func=_cmd_demo)
 
     from .cli_export import add_export_parser

@@ -94,13 +94,23 @@ def _p(p: float) -> str:
     return "< 1e-300" if p == 0.0 else f"= {p:.2e}"
 
 
-def add_study_parser(sub) -> None:
-    """Register ``cascal study`` on the subparsers ``sub``."""
+def _trials(text: str) -> int:
+    """argparse type: a trial count from 1 to 10^8 (the pending trials are listed)."""
     from .cli import positive_int
 
+    value = positive_int(text)
+    if value > 10**8:
+        raise argparse.ArgumentTypeError(f"expected at most 100000000 trials, got {value}")
+    return value
+
+
+def add_study_parser(sub) -> None:
+    """Register ``cascal study`` on the subparsers ``sub``."""
+    from .cli import positive_int, seed
+
     p = sub.add_parser("study", help="run the paper's Monte Carlo study (resumable)")
-    p.add_argument("--trials", type=positive_int, default=12000, help="number of trials (12000)")
-    p.add_argument("--seed", type=int, default=0, help="root seed (0)")
+    p.add_argument("--trials", type=_trials, default=12000, help="number of trials (12000)")
+    p.add_argument("--seed", type=seed, default=0, help="root seed (0)")
     p.add_argument("--restarts", type=positive_int, default=3, help="optimiser starts (3)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=positive_int, default=None, help="processes (CPU count)")

@@ -306,7 +306,8 @@ def fit_devices(
 
 
 def _device_job(testbed: str, device: str, out: str, options: dict[str, object]) -> DeviceResult:
-    """Fit one device (runs in a worker process); a CascalError becomes a skipped result."""
+    """Fit one device (runs in a worker process). Any failure becomes a skipped result (a
+    fleet does not stop for one device), and a model of an earlier run at ``out`` goes."""
     name = Path(device).stem
     try:
         prefix = load_model(testbed)
@@ -325,7 +326,15 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
         path = save_model(out, model)
         s = summarize_device(model)
     except (CascalError, OSError) as exc:
-        return DeviceResult(name, device, error=str(exc))
+        error = str(exc)
+    except Exception as exc:  # reported, with its type, in the fleet summary
+        error = f"unexpected {type(exc).__name__}: {exc}"
+    else:
+        error = None
+    if error is not None:
+        if Path(out).is_file():
+            Path(out).unlink()
+        return DeviceResult(name, device, error=error)
     return DeviceResult(
         name,
         device,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -22,11 +23,23 @@ _UMASK = _read_umask()
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     """Call ``write(tmp_path)`` and rename the result onto ``path``; nothing half-written.
 
+    A symbolic link stays and its target is replaced; a device or FIFO (``/dev/stdout``, a
+    named pipe) is written in place, since renaming a file onto it would replace it.
+
     Args:
         path: Destination file; its folder is created if missing.
         write: Writes the whole content to the temporary path it is given.
     """
     dest = Path(path)
+    try:
+        mode = os.stat(dest).st_mode  # through links
+    except OSError:
+        mode = None
+    if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        write(str(dest))  # a device or a FIFO (/dev/stdout, a pipe): written in place
+        return dest
+    if dest.is_symlink():  # replace the file the link points at, and keep the link
+        dest = Path(os.path.realpath(dest))
     try:
         dest.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)

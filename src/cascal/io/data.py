@@ -125,7 +125,8 @@ def read_table(
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise InputError(f"not UTF-8 text ({exc.reason} at byte {exc.start})", file=name) from None
-    first = text.split("\n", 1)[0].rstrip("\r")
+    text = text.replace("\r\n", "\n").replace("\r", "\n")  # CRLF, and CR alone (old Macs)
+    first = text.split("\n", 1)[0]
     delim = max((",", ";", "\t"), key=first.count)
     header = _header(first, delim, name)
     idx = _pick(header, columns, name, hint)
@@ -172,6 +173,15 @@ def read_stage(
     name = table.source.file
     x, y = table.columns
     if period is not None:
+        span = float(x.max() - x.min())
+        if span >= period:
+            raise InputError(
+                f"readings in column {table.source.columns[0]!r} span {span:.6g}, a full "
+                f"--period ({period:g}) or more: a rotary sensor's readings lie within one "
+                "turn; check the period and its unit",
+                file=name,
+                row=int(table.rows[np.argmax(x)]),
+            )
         y = x + (np.mod(y - x + 0.5 * period, period) - 0.5 * period)
     rep = aggregate_repeats(x, y, table.source.columns)
     rows = table.rows[rep.first]
@@ -209,7 +219,10 @@ def _header(first: str, delim: str, name: str) -> list[str]:
         raise InputError(
             "expected a header row with column names, got an empty line", file=name, row=1
         )
-    header = [c.strip() for c in next(csv.reader([first], delimiter=delim))]
+    try:
+        header = [c.strip() for c in next(csv.reader([first], delimiter=delim))]
+    except csv.Error as exc:
+        raise InputError(f"the header row is not readable CSV ({exc})", file=name, row=1) from None
     if all(_is_number(c) for c in header):
         raise InputError(
             f"expected a header row with column names, got numbers ({first.strip()!r}); "
@@ -269,6 +282,18 @@ def _fast(path: str | os.PathLike, raw: bytes, delim: str, width: int) -> np.nda
     return values
 
 
+def _checked(reader, name: str):
+    """The rows of a ``csv.reader``; a row it cannot parse is an InputError naming it."""
+    while True:
+        try:
+            cells = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as exc:
+            raise InputError(f"not readable CSV ({exc})", file=name, row=reader.line_num) from None
+        yield cells
+
+
 def _slow(
     text: str, delim: str, header: list[str], idx: list[int], name: str
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -277,7 +302,7 @@ def _slow(
     out: list[list[float]] = []
     rows: list[int] = []
     width = len(header)
-    for cells in reader:
+    for cells in _checked(reader, name):
         row = reader.line_num
         if not cells or all(not c.strip() for c in cells):
             continue  # blank line

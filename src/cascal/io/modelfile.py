@@ -154,6 +154,14 @@ def load_model(path: str | os.PathLike) -> CalibrationModel:
     except (OSError, UnicodeDecodeError) as exc:
         raise ModelFileError(f"{name}: cannot read the model file ({exc})") from None
     try:
+        return _parse(text, name)
+    except RecursionError:
+        raise ModelFileError(f"{name}: not a valid model file: nested too deeply") from None
+
+
+def _parse(text: str, name: str) -> CalibrationModel:
+    """The model in a model file's text; ModelFileError naming ``name`` if it is none."""
+    try:
         doc = json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
         end = " (the file ends early: truncated?)" if exc.pos >= len(text.rstrip()) else ""

@@ -7,6 +7,7 @@ compared on every reopen, so a folder is never silently reused for other setting
 from __future__ import annotations
 
 import json
+import math
 import sqlite3
 from collections.abc import Iterable
 from pathlib import Path
@@ -105,9 +106,16 @@ class StudyDB:
     def done(self) -> set[int]:
         """Indices of the trials already stored."""
         try:
-            return {r[0] for r in self.con.execute("SELECT idx FROM trials")}
+            done = [r[0] for r in self.con.execute("SELECT idx FROM trials")]
         except sqlite3.DatabaseError as exc:
             raise self._unreadable(exc) from None
+        for i in done:
+            if not (type(i) is int and i >= 0):
+                raise self._refuse(
+                    f"has an unreadable record of trial {i!r} (an index must be a whole "
+                    "number >= 0)"
+                )
+        return set(done)
 
     def add(self, results: Iterable[TrialResult]) -> None:
         """Store finished trials in one transaction (all or none); a stored index is kept."""
@@ -132,7 +140,6 @@ class StudyDB:
         """Every stored trial, ordered by index."""
         cols = ", ".join(f"j_{m}" for m in self.methods)
         query = f"SELECT idx, {cols}, redraws, fits, seconds FROM trials ORDER BY idx"
-        k = len(self.methods)
         out = []
         try:
             rows = self.con.execute(query).fetchall()
@@ -140,17 +147,35 @@ class StudyDB:
             raise self._unreadable(exc) from None
         for row in rows:
             try:
-                cost = {m: float(v) for m, v in zip(self.methods, row[1 : 1 + k], strict=True)}
-                fits, seconds = json.loads(row[2 + k]), json.loads(row[3 + k])
-                if not (isinstance(fits, dict) and isinstance(seconds, dict)):
-                    raise ValueError("fits and seconds must be JSON objects")
+                out.append(self._record(row))
             except (ValueError, TypeError) as exc:
                 raise self._refuse(f"has an unreadable record of trial {row[0]} ({exc})") from None
-            out.append(TrialResult(row[0], cost, int(row[1 + k]), fits, seconds))
         return out
+
+    def _record(self, row: tuple) -> TrialResult:
+        """A stored row as a trial; ValueError where a field is not what a trial holds."""
+        k = len(self.methods)
+        index, redraws = row[0], row[1 + k]
+        if not (type(index) is int and index >= 0 and type(redraws) is int and redraws >= 0):
+            raise ValueError("expected whole numbers >= 0 for the index and the redraws")
+        cost = {m: float(v) for m, v in zip(self.methods, row[1 : 1 + k], strict=True)}
+        fits, seconds = json.loads(row[2 + k]), json.loads(row[3 + k])
+        numbers = list(cost.values()) + list(_values(seconds))
+        for stage in _values(fits):
+            numbers += _values(stage)
+        if not all(type(v) in (int, float) and math.isfinite(v) for v in numbers):
+            raise ValueError("expected finite numbers for J, the fits and the timings")
+        return TrialResult(index, cost, redraws, fits, seconds)
 
     def close(self) -> None:
         self.con.close()
+
+
+def _values(obj: object) -> list:
+    """The values of a JSON object; ValueError for anything else."""
+    if not isinstance(obj, dict):
+        raise ValueError(f"expected a JSON object, got {type(obj).__name__}")
+    return list(obj.values())
 
 
 def _identity(config_json: str) -> dict:
