@@ -123,3 +123,16 @@ def test_fast_path_errors_are_located_exactly(tmp_path):
 def test_read_table_reports_unreadable_file(tmp_path):
     with pytest.raises(InputError, match="cannot read"):
         read_table(tmp_path / "missing.csv", (None,))
+
+
+def test_cr_line_ends_are_read(tmp_path):
+    """Files with CR alone as line end (old Mac) read like LF and CRLF files."""
+    rows = "a,b\n1,1.1\n2,2.05\n3,3.2\n"
+    tables = []
+    for name, end in (("lf", "\n"), ("crlf", "\r\n"), ("cr", "\r")):
+        path = tmp_path / f"{name}.csv"
+        path.write_bytes(rows.replace("\n", end).encode())
+        tables.append(read_table(path, (None, None)))
+    for t in tables[1:]:
+        assert all(np.array_equal(a, b) for a, b in zip(t.columns, tables[0].columns, strict=True))
+        assert np.array_equal(t.rows, tables[0].rows)

@@ -30,6 +30,13 @@ FIT_CASES = {
     "nan": ("a,b\n1,1\nnan,2\n3,3\n", [], ["row 3", "column 'a'", "finite", "'nan'"]),
     "inf": ("a,b\n1,1\n2,2\n3,-inf\n", [], ["row 4", "column 'b'", "finite"]),
     "too_few_rows": ("a,b\n1,1\n2,2\n", [], ["row 3", "at least 3 data rows", "got 2"]),
+    "huge_cell": (GOOD + "5," + "6" * 200_000 + "\n", [], ["row 6", "not readable CSV"]),
+    "stray_cr": ("a,b\n1,1\n2\r,2\n3,3\n", [], ["row 3", "missing cells"]),
+    "period_too_short": (
+        GOOD,
+        ["--kernel", "periodic", "--period", "2"],
+        ["row 5", "span 3", "--period (2)", "one turn"],
+    ),
     "too_few_positions": ("a,b\n1,1\n1,1.1\n2,2\n", [], ["3 or more distinct positions"]),
     "extra_cell": ("a,b\n1,1\n2,2,7\n3,3\n", [], ["row 3", "extra cells"]),
     "missing_cell": ("a,b\n1,1\n2\n3,3\n", [], ["row 3", "missing cells"]),

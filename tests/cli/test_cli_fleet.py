@@ -68,3 +68,40 @@ def test_device_model_equals_a_plain_fit_of_both_stages(fleet):
     assert a["calibrated_range"] == b["calibrated_range"]
     tb_model = json.loads((out / "testbed.json").read_text())
     assert tb_model["stages"][0] == b["stages"][0]
+
+
+def test_parser_refuses_negative_seeds_and_too_many_trials(tmp_path):
+    for argv in (
+        ["fit", tmp_path / "a.csv", "-o", tmp_path / "m.json", "--seed", "-1"],
+        ["study", "--trials", "2", "--seed", "-3", "--out", tmp_path / "s"],
+        ["study", "--trials", str(10**9), "--out", tmp_path / "s"],
+    ):
+        res = run_cascal(*argv)
+        assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+        assert "seed >= 0" in res.stderr or "at most 100000000 trials" in res.stderr
+    assert not (tmp_path / "s").exists()
+
+
+def test_unexpected_failure_skips_one_device_and_removes_its_old_model(fleet, monkeypatch):
+    """Any exception in one device's fit is that device's error, with its type; the others
+    complete, and a model an earlier run wrote for the failed device is removed."""
+    from cascal import workflow
+
+    tmp, _, folder, out, _ = fleet
+    devices = sorted(folder.glob("device0*.csv"))[:2]
+    again = tmp / "again"
+    stale = again / f"{devices[0].stem}.json"
+    stale.parent.mkdir()
+    stale.write_text("a model of an earlier run")
+    real = workflow.fit_model
+
+    def flaky(stages, **kw):
+        if stages[0].source.file == str(devices[0]):
+            raise ZeroDivisionError("boom")
+        return real(stages, **kw)
+
+    monkeypatch.setattr(workflow, "fit_model", flaky)
+    options = {"n_restarts": 2, "seed": 0}
+    results = workflow.fit_devices(out / "testbed.json", devices, again, options=options)
+    assert results[0].error == "unexpected ZeroDivisionError: boom" and not stale.exists()
+    assert results[1].error is None and (again / f"{devices[1].stem}.json").exists()
