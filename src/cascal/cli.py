@@ -89,7 +89,8 @@ def _cmd_correct(args: argparse.Namespace) -> int:
         "U": 2.0 * u,
         "out_of_range": out,
     }
-    decimals = auto_decimals([c.reading, c.corrected], c.u if gp else None)
+    inside = ~out  # far-off readings must not cost the others their decimals
+    decimals = auto_decimals([c.reading[inside], c.corrected[inside]], c.u[inside] if gp else None)
     path = write_columns(args.output, columns, decimals=decimals)
     if n_out:
         first = int(table.rows[np.argmax(out)])

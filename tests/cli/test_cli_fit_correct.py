@@ -52,7 +52,8 @@ def test_command_output_equals_library_in_memory(corrected, linear_files, linear
     res, table = corrected
     model = fit_model([read_stage(f) for f in files])
     c = correct(model, read_readings(readings).columns[0])
-    decimals = auto_decimals([c.reading, c.corrected], c.u)
+    inside = ~c.out_of_range  # the decimals come from the readings inside the range
+    decimals = auto_decimals([c.reading[inside], c.corrected[inside]], c.u[inside])
     assert f"({decimals} decimals)" in res.stdout
     tol = 0.5 * 10.0**-decimals + 1e-15
     np.testing.assert_allclose(table.columns[1], c.corrected, rtol=0, atol=tol)
@@ -120,3 +121,20 @@ def test_columns_picked_by_name_and_empty_out_of_range(linear_case, tmp_path):
     rows = out.read_text().splitlines()
     assert rows[2].split(",")[1:] == ["", "", "", "1"]
     assert rows[1].split(",")[-1] == "0" and rows[1].split(",")[1] != ""
+
+
+def test_a_far_outlier_keeps_the_other_rows_digits(linear_files, tmp_path):
+    """A reading far outside the range (here 1e9) does not cut the decimals of the rows
+    inside it: they are written as precisely as without it."""
+    files, _ = linear_files
+    model = tmp_path / "lut.json"
+    assert run_cascal("fit", *files, "-o", model, "--method", "lut").returncode == 0
+    readings = tmp_path / "r.csv"
+    readings.write_text("reading\n0.5\n0.6\n1e9\n")
+    out = tmp_path / "c.csv"
+    assert run_cascal("correct", model, readings, "-o", out).returncode == 0
+    rows = out.read_text().splitlines()[1:]
+    want = correct(load_model(model), np.array([0.5, 0.6])).corrected
+    got = np.array([float(r.split(",")[1]) for r in rows[:2]])
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    assert rows[2].endswith(",1")
