@@ -46,11 +46,32 @@ def _cmd_example(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_output(path: str | Path, *, folder: bool = False) -> None:
+    """Refuse an output path that cannot be written, before any work: a folder where a
+    file is due (or a file where a folder is), or a location under a file or in a folder
+    this process may not write to."""
+    p = Path(path)
+    if str(path) == "":
+        raise InputError("-o: expected a file name, got an empty one")
+    if folder and p.exists() and not p.is_dir():
+        raise InputError(f"-o {p}: expected a folder, got an existing file")
+    if not folder and p.is_dir():
+        raise InputError(f"-o {p}: expected a file name, got an existing folder")
+    parent = (p if folder else p.parent).absolute()
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"-o {p}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"-o {p}: no permission to write in {parent}")
+
+
 def _cmd_fit(args: argparse.Namespace) -> int:
     """Fit stage files (reference end first) and write a model file."""
     from .io.modelfile import save_model
     from .workflow import fit_model
 
+    check_output(args.output)
     data = _read_stages(args.stages, args)
     model = fit_model(data, **_fit_kwargs(args))
     path = save_model(args.output, model)
@@ -68,6 +89,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     from .io.modelfile import load_model
     from .workflow import correct
 
+    check_output(args.output)
     model = load_model(args.model)
     table = read_readings(args.readings, column=args.column)
     c = correct(model, table.columns[0])
@@ -112,6 +134,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     from .io.modelfile import save_model
     from .workflow import fit_devices, fit_model
 
+    check_output(args.output, folder=True)
     folder = Path(args.devices)
     files = sorted(folder.glob("*.csv")) if folder.is_dir() else []
     if not files:
@@ -144,6 +167,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from .io.modelfile import load_model
     from .report import build_report
 
+    check_output(args.output)
     model = load_model(args.model)
     path = write_text(args.output, build_report(model, source=Path(args.model).name))
     print(f"Report written to {path}")

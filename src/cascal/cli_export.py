@@ -11,6 +11,7 @@ __all__ = ["add_export_parser"]
 
 def _cmd_export(args: argparse.Namespace) -> int:
     from . import __version__
+    from .cli import check_output
     from .errors import InputError
     from .io.atomic import write_text
     from .io.ctable import c_header, c_identifier, table_csv
@@ -18,6 +19,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from .workflow import compensation
 
     out = Path(args.output)
+    check_output(out)
     if args.tolerance is not None and not (0 < args.tolerance < float("inf")):
         raise InputError(f"--tolerance: expected a positive number, got {args.tolerance!r}")
     if out.suffix not in (".h", ".csv"):

@@ -143,6 +143,19 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
     out["export_edited_model"] = (
         ["export", tmp / "model_edited.json", "-o", dest], dest, ["checksum"], "model_edited.json"
     )  # fmt: skip
+    # Outputs that cannot be written, refused before any fitting.
+    taken = tmp / "taken_folder"
+    taken.mkdir()
+    plain = tmp / "plain_file"
+    plain.write_text("x")
+    out["output_is_a_folder"] = (
+        ["fit", files[0], "-o", taken], tmp / "never.json", ["expected a file name", "folder"],
+        taken.name,
+    )  # fmt: skip
+    out["output_under_a_file"] = (
+        ["correct", model, readings, "-o", plain / "c.csv"], plain / "c.csv",
+        ["is a file, not a folder"], plain.name,
+    )  # fmt: skip
     # A study folder whose database is not one.
     folder = tmp / "study_corrupt"
     folder.mkdir()
@@ -179,6 +192,8 @@ ALL = [
     "report_edited_model",
     "fleet_bad_testbed",
     "study_corrupt_database",
+    "output_is_a_folder",
+    "output_under_a_file",
     "export_bad_suffix",
     "export_bad_name",
     "export_bad_tolerance",

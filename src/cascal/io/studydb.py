@@ -41,7 +41,12 @@ class StudyDB:
         self.folder.mkdir(parents=True, exist_ok=True)
         self.path = self.folder / DB_NAME
         self.methods = list(config["methods"])
-        self.con = sqlite3.connect(self.path)
+        if self.path.is_dir():
+            raise self._refuse("is a folder, not a study database")
+        try:
+            self.con = sqlite3.connect(self.path)
+        except sqlite3.Error as exc:
+            raise self._unreadable(exc) from None
         try:
             self._open(config)
         except sqlite3.DatabaseError as exc:
@@ -98,9 +103,11 @@ class StudyDB:
     def _refuse(self, problem: str, hint: str = "choose another --out folder") -> InputError:
         return InputError(f"{self.path} {problem}; {hint}")
 
-    def _unreadable(self, exc: sqlite3.DatabaseError) -> InputError:
+    def _unreadable(self, exc: sqlite3.Error) -> InputError:
         if "locked" in str(exc):
             return InputError(f"{self.path} is in use by another study process ({exc})")
+        if "readonly" in str(exc) or "unable to open" in str(exc):
+            return InputError(f"{self.path} cannot be opened for writing ({exc})")
         return self._refuse(f"is not a readable cascal study database ({exc})")
 
     def done(self) -> set[int]:
