@@ -136,3 +136,12 @@ def test_cr_line_ends_are_read(tmp_path):
     for t in tables[1:]:
         assert all(np.array_equal(a, b) for a, b in zip(t.columns, tables[0].columns, strict=True))
         assert np.array_equal(t.rows, tables[0].rows)
+
+
+def test_a_mean_of_repeats_is_named_as_such(tmp_path):
+    """Where a value in the message is the mean of repeated readings, the message says so
+    (the file holds no cell with that value)."""
+    path = tmp_path / "rep.csv"
+    path.write_text("a,b\n1,1\n2,2.6\n2,2.4\n3,2.45\n4,4\n")
+    with pytest.raises(InputError, match=r"b 2\.5 at a 2\.0 \(the mean of its 2 readings\)"):
+        read_stage(path)

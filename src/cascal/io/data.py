@@ -196,9 +196,14 @@ def read_stage(
     if bad.size:
         k = bad[0]
         xn, yn = table.source.columns
+
+        def value(j: int) -> str:
+            n = int(rep.counts[j])
+            mean = f" (the mean of its {n} readings)" if n > 1 else ""
+            return f"{yn} {float(rep.y[j])!r} at {xn} {float(rep.x[j])!r}{mean}"
+
         raise InputError(
-            f"{yn} {float(rep.y[k + 1])!r} at {xn} {float(rep.x[k + 1])!r} is not above "
-            f"{yn} {float(rep.y[k])!r} at {xn} {float(rep.x[k])!r} (row {int(rows[k])}); "
+            f"{value(k + 1)} is not above {value(k)} (row {int(rows[k])}); "
             "the more accurate reading must increase with the calibrated one (one-to-one, "
             "the paper's bijectivity assumption)",
             file=name,
