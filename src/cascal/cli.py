@@ -305,7 +305,7 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
         default=None,
         help="period of --kernel periodic, e.g. 360 for degrees",
     )
-    p.add_argument("--unit", default="m", help="unit of the readings, for labels (default m)")
+    p.add_argument("--unit", type=unit, default="m", help="unit of the readings (default m)")
     p.add_argument(
         "--x-column",
         action="append",
@@ -324,6 +324,13 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--restarts", type=positive_int, default=5, help="optimiser starts per stage (default 5)"
     )
+
+
+def unit(text: str) -> str:
+    """argparse type: a unit label, 1 to 20 printable characters on one line."""
+    if not (1 <= len(text) <= 20 and text.isprintable()):
+        raise argparse.ArgumentTypeError(f"expected 1 to 20 printable characters, got {text!r}")
+    return text
 
 
 def seed(text: str) -> int:

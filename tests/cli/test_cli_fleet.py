@@ -70,15 +70,17 @@ def test_device_model_equals_a_plain_fit_of_both_stages(fleet):
     assert tb_model["stages"][0] == b["stages"][0]
 
 
-def test_parser_refuses_negative_seeds_and_too_many_trials(tmp_path):
+def test_parser_refuses_negative_seeds_too_many_trials_and_odd_units(tmp_path):
     for argv in (
         ["fit", tmp_path / "a.csv", "-o", tmp_path / "m.json", "--seed", "-1"],
+        ["fit", tmp_path / "a.csv", "-o", tmp_path / "m.json", "--unit", "m\nx"],
         ["study", "--trials", "2", "--seed", "-3", "--out", tmp_path / "s"],
         ["study", "--trials", str(10**9), "--out", tmp_path / "s"],
     ):
         res = run_cascal(*argv)
         assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
-        assert "seed >= 0" in res.stderr or "at most 100000000 trials" in res.stderr
+        words = ("seed >= 0", "at most 100000000 trials", "printable characters")
+        assert any(w in res.stderr for w in words), res.stderr
     assert not (tmp_path / "s").exists()
 
 
