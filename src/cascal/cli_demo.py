@@ -29,7 +29,7 @@ __all__ = ["run_demo"]
 
 
 def run_demo(out: Path, *, seed: int, main: Callable[[Sequence[str]], int]) -> int:
-    """Write, fit, correct and report both demo cases under ``out``; returns the status."""
+    """Write, fit, correct, report and export both demo cases under ``out``; returns the status."""
     for case in (linear_demo(seed), rotary_demo(seed)):
         folder = out / "demo" / case.name
         status = _run_case(case, folder, main)
