@@ -145,3 +145,23 @@ def test_a_mean_of_repeats_is_named_as_such(tmp_path):
     path.write_text("a,b\n1,1\n2,2.6\n2,2.4\n3,2.45\n4,4\n")
     with pytest.raises(InputError, match=r"b 2\.5 at a 2\.0 \(the mean of its 2 readings\)"):
         read_stage(path)
+
+
+@pytest.mark.parametrize(
+    ("text", "names"),
+    [
+        ("pos (mm; raw),ref (mm; raw)\n1,1.1\n2,2.05\n3,3.2\n", ["pos (mm; raw)", "ref (mm; raw)"]),
+        ("pos, mm\tref, mm\n1\t1.1\n2\t2.05\n3\t3.2\n", ["pos, mm", "ref, mm"]),
+        ("a;b\n1;1.1\n2;2.05\n3;3.2\n", ["a", "b"]),
+        ("a,b\n\n1,1.1\n2,2.05\n3,3.2\n", ["a", "b"]),
+    ],
+    ids=["semicolons_in_names", "commas_in_tab_names", "semicolons", "blank_line_first"],
+)
+def test_separator_fits_the_data_rows(tmp_path, text, names):
+    """The separator is the one that splits the first data row like the header, so column
+    names may contain the other separators."""
+    path = tmp_path / "s.csv"
+    path.write_text(text)
+    table = read_table(path, (None, None))
+    assert list(table.source.columns) == names
+    assert np.array_equal(table.columns[1], [1.1, 2.05, 3.2])

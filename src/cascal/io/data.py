@@ -106,7 +106,8 @@ def read_table(
     """Read numeric columns of a CSV file with a header row.
 
     Args:
-        path: The file, comma, semicolon or tab separated (detected from the header).
+        path: The file, comma, semicolon or tab separated (detected from the header and
+            the first data row).
         columns: One entry per wanted column: its name, or all None to take the columns in
             order (the file must then have exactly ``len(columns)`` columns).
         hint: Appended to the message about missing or extra columns.
@@ -127,7 +128,7 @@ def read_table(
         raise InputError(f"not UTF-8 text ({exc.reason} at byte {exc.start})", file=name) from None
     text = text.replace("\r\n", "\n").replace("\r", "\n")  # CRLF, and CR alone (old Macs)
     first = text.split("\n", 1)[0]
-    delim = max((",", ";", "\t"), key=first.count)
+    delim = _delimiter(text)
     header = _header(first, delim, name)
     idx = _pick(header, columns, name, hint)
     values = rows = None
@@ -217,6 +218,27 @@ def read_stage(
 def read_readings(path: str | os.PathLike, *, column: str | None = None) -> Table:
     """Read device readings to correct: a one-column file, or the column named ``column``."""
     return read_table(path, (column,), hint="; choose one by name with --column")
+
+
+def _delimiter(text: str) -> str:
+    """The separator (comma, semicolon or tab) most frequent in the header row that splits
+    the first data row into as many cells as the header; else the most frequent one.
+    Column names may then contain the other separators (``pos (mm; raw),ref (mm; raw)``)."""
+    lines = text[:65536].split("\n")
+    first = lines[0]
+    data = next((line for line in lines[1:50] if line.strip()), "")
+    candidates = sorted((",", ";", "\t"), key=first.count, reverse=True)  # ties: in order
+    for d in candidates:
+        if first.count(d) and data and _cells(first, d) == _cells(data, d):
+            return d
+    return candidates[0]
+
+
+def _cells(line: str, delim: str) -> int:
+    try:
+        return len(next(csv.reader([line], delimiter=delim)))
+    except csv.Error:
+        return -1
 
 
 def _header(first: str, delim: str, name: str) -> list[str]:
