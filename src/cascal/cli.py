@@ -333,26 +333,25 @@ def unit(text: str) -> str:
     return text
 
 
-def seed(text: str) -> int:
-    """argparse type: a seed, a whole number of at least 0."""
+def _whole(text: str, low: int, expected: str) -> int:
+    """A whole number of at least ``low`` for argparse; ``expected`` words the refusal."""
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a seed >= 0, got {value}")
+    if value < low:
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {value}")
     return value
+
+
+def seed(text: str) -> int:
+    """argparse type: a seed, a whole number of at least 0."""
+    return _whole(text, 0, "a seed >= 0")
 
 
 def positive_int(text: str) -> int:
     """argparse type: an integer of at least 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
-    return value
+    return _whole(text, 1, "at least 1")
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -132,8 +132,6 @@ def compensation_table(
         error = float(np.max(np.abs(table(checks)[0] - exact)))
         if error <= tolerance:
             u = None if std is None else np.asarray(std(nodes), dtype=float)
-            return CompensationTable(
-                lo, hi, step, correction, u, period, tolerance, error, checks.size
-            )
+            return replace(table, u=u, error=error)
         intervals *= 2
     return None
