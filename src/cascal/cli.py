@@ -434,9 +434,11 @@ def _parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
 
     from .cli_export import add_export_parser
+    from .cli_plan import add_plan_parser
     from .cli_study import add_study_parser
 
     add_export_parser(sub)
+    add_plan_parser(sub)
     add_study_parser(sub)
     return p
 

@@ -12,8 +12,9 @@ from matplotlib.figure import Figure
 
 from .cascade import FittedCascade
 from .gp import Z95, FittedGP
+from .planning import Plan, variance_after
 
-__all__ = ["plot_cascade", "plot_cost_distribution", "plot_stage"]
+__all__ = ["plot_cascade", "plot_cost_distribution", "plot_plan", "plot_stage"]
 
 
 def plot_stage(
@@ -161,3 +162,85 @@ def plot_cost_distribution(
     for ax in (ax_pdf, ax_cdf):
         ax.grid(True, which="both", alpha=0.3)
     return fig
+
+
+def plot_plan(
+    plan: Plan,
+    testbed: FittedGP,
+    reach: list[tuple[float, float]],
+    *,
+    lower_name: str | None = None,
+    fig: Figure | None = None,
+    scale: float = 1.0,
+    unit: str = "m",
+    xunit: str = "m",
+) -> Figure:
+    """Proposed reference measurements: stage 0's standard uncertainty now and after them,
+    with the existing reference points, the reachable intervals and the proposals; and,
+    when the target is the stage below (``lower_name``), that stage's uncertainty too.
+
+    Args:
+        plan: The plan of :func:`cascal.planning.plan_reference`.
+        testbed: Stage 0's fitted GP.
+        reach: Intervals ``(lo, hi)`` of test-bed readings the reference can reach.
+        lower_name: Name of the lower stage when it is the plan's target, else None.
+        scale, unit: Display scale of uncertainties; ``xunit`` of readings.
+    """
+    panels = 1 if lower_name is None else 2
+    if fig is None:
+        fig = Figure(figsize=(7.5, 3.0 * panels), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(panels, 1))
+    ax = axes[0]
+    ends = [*testbed.x, *np.ravel(reach), *plan.positions]
+    if lower_name is None:
+        ends += [*plan.where]
+    lo, hi = float(np.min(ends)), float(np.max(ends))
+    pad = 0.02 * (hi - lo or 1.0)
+    grid = np.linspace(lo - pad, hi + pad, 600)
+    now = testbed.predict(grid, return_std=True)[1]
+    after = np.sqrt(
+        np.clip(variance_after(testbed, grid, plan.positions, plan.noise_variance), 0, None)
+    )
+    for k, (a, b) in enumerate(reach):
+        ax.axvspan(a, b, color="C2", alpha=0.12, lw=0, label="reachable" if k == 0 else None)
+    ax.plot(grid, now * scale, color="C0", lw=1.5, label="stage 0 u now")
+    ax.plot(grid, after * scale, color="C1", lw=1.5, ls="--", label="after the plan")
+    ax.plot(testbed.x, np.zeros_like(testbed.x), "k|", ms=8, label="reference points")
+    for k, p in enumerate(plan.positions, 1):
+        ax.axvline(p, color="C3", lw=0.8, alpha=0.7, label="proposed" if k == 1 else None)
+    top = float(np.max(now)) * scale
+    for p, orders in _labels(plan.positions, 0.015 * (hi - lo or 1.0)):
+        ax.annotate(orders, (p, top), fontsize=7, color="C3", ha="center", va="bottom")
+    ax.set_ylim(0, 1.15 * top if top > 0 else 1.0)
+    ax.set_xlabel(f"test-bed reading [{xunit}]")
+    ax.set_ylabel(f"standard uncertainty [{unit}]")
+    ax.set_title(
+        f"{plan.positions.size} proposed reference measurements (stage 0), numbered in order",
+        fontsize=9,
+    )
+    ax.legend(fontsize=7, loc="lower center", ncol=3, framealpha=0.9)
+    if lower_name is not None:
+        bx = axes[1]
+        bx.plot(plan.where, plan.u_before * scale, color="C0", lw=1.5, label=f"{lower_name} u now")
+        bx.plot(
+            plan.where, plan.u_after * scale, color="C1", lw=1.5, ls="--", label="after the plan"
+        )
+        bx.set_ylim(0, None)
+        bx.set_xlabel(f"{lower_name} reading [{xunit}]")
+        bx.set_ylabel(f"standard uncertainty [{unit}]")
+        bx.set_title(f"the target: {lower_name}'s uncertainty over its readings", fontsize=9)
+        bx.legend(fontsize=7, loc="best")
+    return fig
+
+
+def _labels(positions: np.ndarray, near: float) -> list[tuple[float, str]]:
+    """One label per group of proposals closer than ``near``: its mean position and the
+    orders (1-based) of its proposals."""
+    order = np.argsort(positions, kind="stable")
+    groups: list[list[int]] = []
+    for i in order.tolist():
+        if groups and positions[i] - positions[groups[-1][-1]] < near:
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    return [(float(np.mean(positions[g])), ",".join(str(i + 1) for i in sorted(g))) for g in groups]

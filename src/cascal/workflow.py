@@ -24,6 +24,7 @@ from .errors import CascalError, InputError
 from .gp import FittedGP
 from .io.data import StageData, read_stage
 from .io.modelfile import CalibrationModel, load_model, save_model
+from .planning import LowerStage, Plan, plan_reference
 from .tabulate import predict_many
 
 __all__ = [
@@ -34,12 +35,17 @@ __all__ = [
     "correct",
     "fit_devices",
     "fit_model",
+    "plan_measurements",
     "summarize_device",
 ]
 
 #: Coverage factor of the expanded uncertainty U = k u (about 95 % for a normal law, GUM).
 COVERAGE_FACTOR = 2.0
 _SUMMARY_GRID = 1001
+#: Planning: candidate test-bed readings over the reachable intervals, and readings at which
+#: a target's uncertainty is counted.
+_PLAN_CANDIDATES = 1001
+_PLAN_TARGET = 201
 
 
 @dataclass(frozen=True, slots=True)
@@ -215,6 +221,110 @@ def compensation(
             "give a larger tolerance"
         )
     return table
+
+
+@dataclass(frozen=True, slots=True)
+class MeasurementPlan:
+    """Reference measurements proposed for a model's stage 0, with what they were chosen for.
+
+    Attributes:
+        plan: Positions and uncertainties (:class:`~cascal.planning.Plan`).
+        reach: Intervals ``(lo, hi)`` of test-bed readings the candidates covered.
+        candidates: Number of candidate readings.
+        target: What the plan lowers, in words.
+        lower_name: Name of the stage below when its uncertainty is the target, else None.
+    """
+
+    plan: Plan
+    reach: tuple[tuple[float, float], ...]
+    candidates: int
+    target: str
+    lower_name: str | None
+
+
+def plan_measurements(
+    model: CalibrationModel,
+    k: int,
+    *,
+    reach: Sequence[tuple[float, float]] | None = None,
+    where: tuple[float, float] | None = None,
+    noise_std: float | None = None,
+) -> MeasurementPlan:
+    """Propose ``k`` further reference measurements of the model's stage 0 (the test bed).
+
+    The target is, for a ``bayes`` model of two or more stages, stage 1's uncertainty over
+    its calibrated readings (stage 0's covariance is part of its noise); for a
+    ``homoscedastic`` one, stage 0's uncertainty at stage 1's test-bed readings; for a
+    one-stage model, stage 0's uncertainty over ``where`` (default: its readings' span).
+
+    Args:
+        model: A ``bayes`` or ``homoscedastic`` model.
+        k: Measurements to propose.
+        reach: Intervals ``(lo, hi)`` of test-bed readings the reference can reach (``lo ==
+            hi`` for a single reading); default: the span of stage 0's readings.
+        where: Test-bed readings ``(lo, hi)`` to lower the uncertainty over (one-stage
+            models only).
+        noise_std: Standard deviation of one new reference measurement, in the model's
+            unit; default: as precise as the average existing point.
+    """
+    testbed = model.fitted.models[0]
+    if not isinstance(testbed, FittedGP):
+        raise InputError(
+            "a lookup-table (lut) model carries no uncertainty to plan by: fit the stages "
+            "with method bayes or homoscedastic"
+        )
+    x0 = model.data[0].x
+    span = (float(x0.min()), float(x0.max()))
+    intervals = tuple(_interval(r, "reach") for r in (reach or [span]))
+    if noise_std is not None and not (np.isfinite(noise_std) and noise_std >= 0):
+        raise InputError(f"noise std: expected a number >= 0 of {model.unit}, got {noise_std!r}")
+    s2 = None if noise_std is None else float(noise_std) ** 2
+    candidates = _candidates(intervals)
+    unit = model.unit
+    if len(model.data) == 1:
+        lo, hi = span if where is None else _interval(where, "where")
+        grid = np.linspace(lo, hi, _PLAN_TARGET) if hi > lo else np.array([lo])
+        plan = plan_reference(testbed, candidates, k, where=grid, noise_variance=s2)
+        what = f"stage 0's uncertainty over test-bed readings [{lo:.9g}, {hi:.9g}] {unit}"
+        return MeasurementPlan(plan, intervals, candidates.size, what, None)
+    if where is not None:
+        raise InputError(
+            f"where: only for a one-stage model; this one has {len(model.data)} stages, and "
+            "stage 1's readings say where the test bed is used"
+        )
+    lower, name = model.fitted.models[1], model.data[1].name
+    upper = model.data[1].y
+    if model.method == "bayes":
+        x1 = model.data[1].x
+        grid = np.linspace(float(x1.min()), float(x1.max()), _PLAN_TARGET)
+        target = LowerStage(lower, upper, grid)  # type: ignore[arg-type]
+        plan = plan_reference(testbed, candidates, k, lower=target, noise_variance=s2)
+        what = f"stage 1 ({name})'s uncertainty over its readings"
+        return MeasurementPlan(plan, intervals, candidates.size, what, name)
+    plan = plan_reference(testbed, candidates, k, where=upper, noise_variance=s2)
+    what = f"stage 0's uncertainty at the test-bed readings of stage 1 ({name})"
+    return MeasurementPlan(plan, intervals, candidates.size, what, None)
+
+
+def _interval(pair: object, name: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in pair)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected an interval (lo, hi), got {pair!r}") from None
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi):
+        raise InputError(f"{name}: expected finite lo <= hi, got {lo!r}, {hi!r}")
+    return lo, hi
+
+
+def _candidates(intervals: Sequence[tuple[float, float]]) -> np.ndarray:
+    """About :data:`_PLAN_CANDIDATES` readings over the intervals, in proportion to their
+    lengths (both ends of each; a point interval gives its one reading)."""
+    total = sum(hi - lo for lo, hi in intervals)
+    parts = []
+    for lo, hi in intervals:
+        n = 1 if hi == lo else max(2, round(_PLAN_CANDIDATES * (hi - lo) / total))
+        parts.append(np.linspace(lo, hi, n))
+    return np.unique(np.concatenate(parts))
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,0 +1,122 @@
+"""``cascal plan``: where to take the next reference measurements of the test bed."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+__all__ = ["add_plan_parser"]
+
+
+def _cmd_plan(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .cli import check_output
+    from .errors import InputError
+    from .io.atomic import save_figure
+    from .io.csvout import auto_decimals, write_columns
+    from .io.modelfile import load_model
+    from .plots import plot_plan
+    from .report import display_scale
+    from .workflow import plan_measurements
+
+    for path in (args.output, args.plot):
+        if path is not None:
+            check_output(path)
+    if args.plot is not None and Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
+        raise InputError(f"--plot {args.plot}: expected a .png, .svg or .pdf file name")
+    model = load_model(args.model)
+    reach = [_interval(r, "--reach") for r in args.reach] if args.reach else None
+    where = None if args.where is None else _interval(args.where, "--where")
+    mp = plan_measurements(model, args.n, reach=reach, where=where, noise_std=args.noise_std)
+    plan, unit = mp.plan, model.unit
+    spans = ", ".join(f"[{a:.9g}, {b:.9g}]" for a, b in mp.reach)
+    print(
+        f"{plan.positions.size} reference measurement(s) proposed for stage 0 "
+        f"({model.data[0].name}) from {mp.candidates} candidate readings in {spans} {unit}; "
+        f"each measurement's standard deviation {np.sqrt(plan.noise_variance):.3g} {unit}."
+    )
+    print(f"Lowered: {mp.target} ({plan.where.size} readings).")
+    print(f"{'order':>5}  {'test-bed reading':>18}  {'RMS u after':>12}  {'largest u after':>15}")
+    print(f"{'now':>5}  {'':>18}  {plan.u_rms[0]:12.4g}  {plan.u_max[0]:15.4g}")
+    for k, p in enumerate(plan.positions, 1):
+        print(f"{k:5d}  {p:18.9g}  {plan.u_rms[k]:12.4g}  {plan.u_max[k]:15.4g}")
+    if args.output is not None:
+        cols = {
+            "order": np.arange(1, plan.positions.size + 1),
+            "reading": plan.positions,
+            "u_rms": plan.u_rms[1:],
+            "u_max": plan.u_max[1:],
+        }
+        decimals = auto_decimals([plan.positions], plan.u_rms[1:])
+        print(f"Plan written to {write_columns(args.output, cols, decimals=decimals)}")
+    if args.plot is not None:
+        scale, shown = display_scale(unit, float(plan.u_max[0]))
+        fig = plot_plan(
+            plan,
+            model.fitted.models[0],  # type: ignore[arg-type]
+            list(mp.reach),
+            lower_name=mp.lower_name,
+            scale=scale,
+            unit=shown,
+            xunit=unit,
+        )
+        print(f"Figure written to {save_figure(fig, args.plot, dpi=130)}")
+    return 0
+
+
+def _interval(text: str, option: str) -> tuple[float, float]:
+    """``LO:HI`` (or a single reading ``X``) as a pair of floats."""
+    from .errors import InputError
+
+    parts = text.split(":")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) not in (1, 2) or len(values) != len(parts):
+        raise InputError(f"{option} {text!r}: expected LO:HI or a single reading")
+    lo, hi = values[0], values[-1]
+    if not (lo <= hi and abs(lo) < float("inf") and abs(hi) < float("inf")):
+        raise InputError(f"{option} {text!r}: expected finite LO <= HI")
+    return lo, hi
+
+
+def add_plan_parser(sub) -> None:
+    """Register ``cascal plan`` on the subparsers ``sub``."""
+    from .cli import positive_int
+
+    p = sub.add_parser(
+        "plan",
+        help="propose where to take the next reference measurements of the test bed",
+        description="Propose reference measurements of stage 0 (the test bed), one at a time, "
+        "each where it most lowers the uncertainty that matters: the device stage's for a "
+        "bayes model of two stages or more, else the test bed's where it is used.",
+    )
+    p.add_argument("model", metavar="MODEL.json")
+    p.add_argument(
+        "-n", type=positive_int, default=5, help="measurements to propose (default 5, at most 1000)"
+    )
+    p.add_argument(
+        "--reach",
+        action="append",
+        metavar="LO:HI",
+        help="test-bed readings the reference can reach; repeat for several intervals, or "
+        "give a single reading (default: the span of the reference points so far)",
+    )
+    p.add_argument(
+        "--where",
+        metavar="LO:HI",
+        help="test-bed readings where the uncertainty counts (one-stage models; default: "
+        "the span of the reference points)",
+    )
+    p.add_argument(
+        "--noise-std",
+        type=float,
+        default=None,
+        help="standard deviation of one new reference measurement, in the model's unit "
+        "(default: as precise as the average existing point)",
+    )
+    p.add_argument("-o", "--output", metavar="PLAN.csv", help="write the plan as CSV")
+    p.add_argument("--plot", metavar="PLAN.png", help="draw the plan (PNG, SVG or PDF)")
+    p.set_defaults(func=_cmd_plan)

@@ -1,0 +1,244 @@
+"""Planning: where the scarce reference measurements of stage 0 help most.
+
+A further reference measurement at test-bed reading ``c``, with variance ``s2``, lowers
+stage 0's posterior covariance ``C`` by the rank-one term ``C[:, c] C[c, :] / (C[c, c] +
+s2)`` whatever value it reads (hyperparameters held at their fitted values). Measurements
+are chosen one at a time from candidate readings (where the reference can reach), each
+where it most lowers the summed posterior variance of a target:
+
+* stage 0's own variance at given test-bed readings (where the lower stages read the test
+  bed), or
+* the variance of the stage below over its readings, when stage 0's posterior covariance at
+  that stage's upper readings is part of its noise (method ``bayes``): a reduction
+  ``w w^T`` of that noise lowers the summed variance at readings ``g`` by
+  ``|K_g A^-1 w|^2 / (1 - w^T A^-1 w)`` (Sherman-Morrison; ``A`` the stage's target
+  covariance, ``K_g`` its kernel between ``g`` and its readings).
+
+Greedy choice is the usual sequential design for a summed posterior variance; a point may
+be chosen twice (a repeat averages the reference's noise down). The uncertainties after
+the whole plan are recomputed from scratch (:func:`variance_after`,
+:func:`lower_variance_after`), not from the updates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import solve_triangular
+
+from . import linalg
+from .errors import InputError
+from .gp import FittedGP
+from .validation import as_positions
+
+__all__ = ["LowerStage", "Plan", "lower_variance_after", "plan_reference", "variance_after"]
+
+#: Most measurements one plan proposes.
+MAX_MEASUREMENTS = 1000
+
+
+@dataclass(frozen=True, slots=True)
+class LowerStage:
+    """The stage below stage 0, as planning sees it.
+
+    Attributes:
+        gp: Its fitted GP, whose known noise holds stage 0's posterior covariance at
+            ``upper`` (method ``bayes``).
+        upper: Its upper (test-bed) readings, where stage 0 was evaluated, shape (n,).
+        where: Its own readings at which its variance is the target, shape (m,).
+    """
+
+    gp: FittedGP
+    upper: np.ndarray
+    where: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class Plan:
+    """Proposed reference measurements, in the order chosen, and what they are worth.
+
+    Attributes:
+        positions: Test-bed readings at which to measure with the reference, shape (k,).
+        u_rms: RMS of the target's standard uncertainty before (entry 0) and after each
+            measurement, shape (k + 1,), target unit.
+        u_max: Largest standard uncertainty of the target, likewise, shape (k + 1,).
+        noise_variance: Variance assumed for one new reference measurement, unit squared.
+        where: Readings at which the target's uncertainty is counted, shape (m,): test-bed
+            readings, or the lower stage's own readings.
+        u_before: Target's standard uncertainty at ``where`` now, shape (m,).
+        u_after: The same after all ``positions`` are measured, recomputed from scratch,
+            shape (m,).
+    """
+
+    positions: np.ndarray
+    u_rms: np.ndarray
+    u_max: np.ndarray
+    noise_variance: float
+    where: np.ndarray
+    u_before: np.ndarray
+    u_after: np.ndarray
+
+
+def default_noise_variance(testbed: FittedGP) -> float:
+    """Variance of one further reference measurement, as precise as the average existing
+    point: the learned noise variance plus the mean known variance, unit squared."""
+    known = 0.0 if testbed.noise is None else float(np.mean(testbed.noise.diagonal(testbed.x.size)))
+    return float(testbed.noise_variance) + known
+
+
+def plan_reference(
+    testbed: FittedGP,
+    candidates: object,
+    k: int,
+    *,
+    where: object | None = None,
+    lower: LowerStage | None = None,
+    noise_variance: float | None = None,
+) -> Plan:
+    """Choose ``k`` reference measurements among test-bed readings ``candidates`` (c,),
+    greedily, each lowering the target's summed variance most.
+
+    Args:
+        testbed: Stage 0's fitted GP (test-bed readings -> reference readings).
+        candidates: Test-bed readings the reference can reach, shape (c,).
+        k: Measurements to propose, 1 to :data:`MAX_MEASUREMENTS`.
+        where: Target: stage 0's variance at these test-bed readings, shape (m,); or
+        lower: Target: the variance of the stage below at ``lower.where``.
+        noise_variance: Variance of one new measurement; default
+            :func:`default_noise_variance`.
+    """
+    cand = as_positions(candidates, "candidates")
+    if cand.size == 0:
+        raise InputError("candidates: expected at least one reading the reference can reach")
+    if not 1 <= int(k) <= MAX_MEASUREMENTS:
+        raise InputError(f"k: expected 1 to {MAX_MEASUREMENTS} measurements, got {k}")
+    if (where is None) == (lower is None):
+        raise InputError("plan_reference: give the target as where= or lower=, not both")
+    s2 = _noise(testbed, noise_variance)
+    points = as_positions(where, "where") if lower is None else as_positions(lower.upper, "upper")
+    q = points.size
+    _, C = testbed.predict(np.concatenate([points, cand]), return_cov=True)
+    target = _TestbedTarget(C, q) if lower is None else _LowerTarget(lower, C, q)
+    var = [target.variance()]
+    chosen = []
+    for _ in range(int(k)):
+        d = np.clip(np.diagonal(C)[q:], 0.0, None) + s2
+        j = int(np.argmax(target.gains(C[:q, q:], d)))
+        col = C[:, q + j] / np.sqrt(d[j])
+        target.update(col[:q])
+        C -= np.outer(col, col)
+        chosen.append(float(cand[j]))
+        var.append(target.variance())
+    positions = np.asarray(chosen)
+    where_out = points if lower is None else as_positions(lower.where, "where")
+    if lower is None:
+        before = np.diagonal(testbed.predict(points, return_cov=True)[1])
+        after = variance_after(testbed, points, positions, s2)
+    else:
+        before = lower.gp.predict(where_out, return_std=True)[1] ** 2
+        after = lower_variance_after(lower, testbed, positions, s2)
+    v = np.clip(np.asarray(var), 0.0, None)
+    return Plan(
+        positions,
+        np.sqrt(v.mean(axis=1)),
+        np.sqrt(v.max(axis=1)),
+        s2,
+        where_out,
+        np.sqrt(np.clip(before, 0.0, None)),
+        np.sqrt(np.clip(after, 0.0, None)),
+    )
+
+
+def _noise(testbed: FittedGP, noise_variance: float | None) -> float:
+    s2 = default_noise_variance(testbed) if noise_variance is None else float(noise_variance)
+    if not (np.isfinite(s2) and s2 >= 0.0):
+        raise InputError(f"noise_variance: expected a finite value >= 0, got {noise_variance!r}")
+    return s2
+
+
+class _TestbedTarget:
+    """Stage 0's own variance at the first ``q`` points of ``C`` (updated in place)."""
+
+    def __init__(self, C: np.ndarray, q: int) -> None:
+        self.C, self.q = C, q
+
+    def gains(self, S: np.ndarray, d: np.ndarray) -> np.ndarray:
+        return np.einsum("ij,ij->j", S, S) / d
+
+    def update(self, w: np.ndarray) -> None:
+        pass  # the target is the diagonal of C itself
+
+    def variance(self) -> np.ndarray:
+        return np.diagonal(self.C)[: self.q].copy()
+
+
+class _LowerTarget:
+    """The lower stage's variance at its ``where``; its noise holds stage 0's covariance
+    at its upper readings, the first ``q`` points of ``C``."""
+
+    def __init__(self, lower: LowerStage, C: np.ndarray, q: int) -> None:
+        gp = lower.gp
+        self.A = gp.L @ gp.L.T
+        self.L = gp.L
+        self.Kg = gp.kernel(as_positions(lower.where, "where"), gp.x)
+        self.kdiag = gp.kernel.diag(as_positions(lower.where, "where"))
+
+    def gains(self, S: np.ndarray, d: np.ndarray) -> np.ndarray:
+        W = S / np.sqrt(d)
+        M = linalg.cho_solve(self.L, W)
+        fit = np.einsum("ij,ij->j", W, M)
+        KM = self.Kg @ M
+        return np.einsum("ij,ij->j", KM, KM) / np.clip(1.0 - fit, 1e-12, None)
+
+    def update(self, w: np.ndarray) -> None:
+        self.A -= np.outer(w, w)
+        self.L, _ = linalg.cholesky(self.A, what="lower stage's target covariance")
+
+    def variance(self) -> np.ndarray:
+        V = solve_triangular(self.L, self.Kg.T, lower=True, check_finite=False)
+        return self.kdiag - np.einsum("ij,ij->j", V, V)
+
+
+def variance_after(
+    testbed: FittedGP, x: object, positions: object, noise_variance: float
+) -> np.ndarray:
+    """Stage 0's posterior variance at test-bed readings ``x`` (m,) once reference
+    measurements at ``positions`` (k,) with variance ``noise_variance`` are added, from a
+    new Cholesky factor of the enlarged target covariance: shape (m,)."""
+    xs = as_positions(x, "x")
+    L = _enlarged_factor(testbed, as_positions(positions, "positions"), noise_variance)
+    xa = np.concatenate([testbed.x, as_positions(positions, "positions")])
+    V = solve_triangular(L, testbed.kernel(xa, xs), lower=True, check_finite=False)
+    return testbed.kernel.diag(xs) - np.einsum("ij,ij->j", V, V)
+
+
+def _enlarged_factor(testbed: FittedGP, positions: np.ndarray, s2: float) -> np.ndarray:
+    n = testbed.x.size
+    xa = np.concatenate([testbed.x, positions])
+    K = testbed.kernel(xa)
+    K[:n, :n] = testbed.L @ testbed.L.T  # the fitted target covariance, noise included
+    K.flat[n * (xa.size + 1) :: xa.size + 1] += s2
+    L, _ = linalg.cholesky(K, what="enlarged target covariance")
+    return L
+
+
+def lower_variance_after(
+    lower: LowerStage, testbed: FittedGP, positions: object, noise_variance: float
+) -> np.ndarray:
+    """The lower stage's posterior variance at ``lower.where`` (m,) once stage 0 has the
+    reference measurements at ``positions``: its noise keeps everything but stage 0's
+    covariance at ``lower.upper``, which is recomputed; shape (m,)."""
+    pos = as_positions(positions, "positions")
+    up = as_positions(lower.upper, "upper")
+    _, before = testbed.predict(up, return_cov=True)
+    L0 = _enlarged_factor(testbed, pos, noise_variance)
+    xa = np.concatenate([testbed.x, pos])
+    V = solve_triangular(L0, testbed.kernel(xa, up), lower=True, check_finite=False)
+    after = testbed.kernel(up) - V.T @ V
+    gp = lower.gp
+    A = gp.L @ gp.L.T - (before - after)
+    L, _ = linalg.cholesky(0.5 * (A + A.T), what="lower stage's target covariance")
+    g = as_positions(lower.where, "where")
+    W = solve_triangular(L, gp.kernel(g, gp.x).T, lower=True, check_finite=False)
+    return gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
