@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from . import kernels, noise, simulation
+from . import kernels, noise, planning, simulation
 from ._version import __version__
 from .baselines import OffsetTable, fit_table
 from .cascade import Cascade, FittedCascade, Stage
@@ -43,6 +43,7 @@ __all__ = [
     "load_model",
     "log_marginal_likelihood",
     "noise",
+    "planning",
     "run_study",
     "save_model",
     "simulation",

@@ -1,5 +1,5 @@
-"""``cascal demo``: simulated example files, then ``fit``, ``correct``, ``report`` and
-``export`` on them.
+"""``cascal demo``: simulated example files, then ``fit``, ``correct``, ``report``,
+``export`` and ``plan`` on them.
 
 Two cases (:mod:`cascal.demo`): a linear axis in metres whose reference cannot reach a
 stretch in the middle, and a rotary table in degrees whose reference cannot reach a sector
@@ -29,7 +29,8 @@ __all__ = ["run_demo"]
 
 
 def run_demo(out: Path, *, seed: int, main: Callable[[Sequence[str]], int]) -> int:
-    """Write, fit, correct, report and export both demo cases under ``out``; returns the status."""
+    """Write, fit, correct, report, export and plan both demo cases under ``out``; returns
+    the status."""
     for case in (linear_demo(seed), rotary_demo(seed)):
         folder = out / "demo" / case.name
         status = _run_case(case, folder, main)
@@ -53,6 +54,7 @@ def run_demo(out: Path, *, seed: int, main: Callable[[Sequence[str]], int]) -> i
     print(
         f"  {linear / 'linear_compensation.h'}   compensation table and function for a controller"
     )
+    print(f"  {linear / 'plan.png'}   where the next reference measurements help most")
     print(f"  {figure}   the rotary correction across 0/360 deg")
     return 0
 
@@ -84,6 +86,16 @@ def _run_case(case: DemoCase, folder: Path, main: Callable[[Sequence[str]], int]
         ["correct", str(model), str(readings), "-o", str(corrected)],
         ["report", str(model), "-o", str(report)],
         ["export", str(model), "-o", str(folder / f"{case.name}_compensation.h")],
+        [
+            "plan",
+            str(model),
+            "-n",
+            "5",
+            "-o",
+            str(folder / "plan.csv"),
+            "--plot",
+            str(folder / "plan.png"),
+        ],
     ):
         print(f"\n$ cascal {shlex.join(argv)}", flush=True)
         status = main(argv)

@@ -102,7 +102,8 @@ def add_plan_parser(sub) -> None:
         action="append",
         metavar="LO:HI",
         help="test-bed readings the reference can reach; repeat for several intervals, or "
-        "give a single reading (default: the span of the reference points so far)",
+        "give a single reading (default: the stretches the reference points cover, gaps "
+        "wider than 3 median spacings left out)",
     )
     p.add_argument(
         "--where",

@@ -32,7 +32,14 @@ from .errors import InputError
 from .gp import FittedGP
 from .validation import as_positions
 
-__all__ = ["LowerStage", "Plan", "lower_variance_after", "plan_reference", "variance_after"]
+__all__ = [
+    "LowerStage",
+    "Plan",
+    "default_noise_variance",
+    "lower_variance_after",
+    "plan_reference",
+    "variance_after",
+]
 
 #: Most measurements one plan proposes.
 MAX_MEASUREMENTS = 1000

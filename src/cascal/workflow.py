@@ -261,7 +261,8 @@ def plan_measurements(
         model: A ``bayes`` or ``homoscedastic`` model.
         k: Measurements to propose.
         reach: Intervals ``(lo, hi)`` of test-bed readings the reference can reach (``lo ==
-            hi`` for a single reading); default: the span of stage 0's readings.
+            hi`` for a single reading); default: the stretches stage 0's readings cover,
+            their gaps (:func:`~cascal.reportdata.find_gaps`) left out.
         where: Test-bed readings ``(lo, hi)`` to lower the uncertainty over (one-stage
             models only).
         noise_std: Standard deviation of one new reference measurement, in the model's
@@ -275,7 +276,7 @@ def plan_measurements(
         )
     x0 = model.data[0].x
     span = (float(x0.min()), float(x0.max()))
-    intervals = tuple(_interval(r, "reach") for r in (reach or [span]))
+    intervals = tuple(_interval(r, "reach") for r in (reach or _covered(x0)))
     if noise_std is not None and not (np.isfinite(noise_std) and noise_std >= 0):
         raise InputError(f"noise std: expected a number >= 0 of {model.unit}, got {noise_std!r}")
     s2 = None if noise_std is None else float(noise_std) ** 2
@@ -304,6 +305,17 @@ def plan_measurements(
     plan = plan_reference(testbed, candidates, k, where=upper, noise_variance=s2)
     what = f"stage 0's uncertainty at the test-bed readings of stage 1 ({name})"
     return MeasurementPlan(plan, intervals, candidates.size, what, None)
+
+
+def _covered(x: np.ndarray) -> list[tuple[float, float]]:
+    """Stretches of readings ``x`` (n,) without their gaps: where the reference has been."""
+    from .reportdata import find_gaps  # (it imports this module)
+
+    out, start = [], float(x.min())
+    for a, b in find_gaps(x):
+        out.append((start, a))
+        start = b
+    return [*out, (start, float(x.max()))]
 
 
 def _interval(pair: object, name: str) -> tuple[float, float]:
