@@ -48,7 +48,9 @@ def test_testbed_target_matches_textbook_variance(cascade):
     tb = fitted.models[0]
     where = np.linspace(0.0, 1.0, 51)
     cand = np.linspace(0.05, 0.95, 91)
-    plan = plan_reference(tb, cand, 6, where=where)
+    calls = []
+    plan = plan_reference(tb, cand, 6, where=where, progress=lambda i, k: calls.append((i, k)))
+    assert calls == [(i, 6) for i in range(1, 7)]
     hp = tb.hyperparameters
     s2 = hp["noise_variance"]
     assert plan.noise_variance == s2 == default_noise_variance(tb)

@@ -7,11 +7,15 @@ from pathlib import Path
 
 __all__ = ["add_plan_parser"]
 
+#: Plans of more measurements than this show progress.
+_QUIET = 20
+
 
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
     from .cli import check_output
+    from .cli_study import Progress
     from .errors import InputError
     from .io.atomic import save_figure
     from .io.csvout import auto_decimals, write_columns
@@ -28,7 +32,14 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     reach = [_interval(r, "--reach") for r in args.reach] if args.reach else None
     where = None if args.where is None else _interval(args.where, "--where")
-    mp = plan_measurements(model, args.n, reach=reach, where=where, noise_std=args.noise_std)
+    progress = Progress(unit="measurement") if args.n > _QUIET else None
+    try:
+        mp = plan_measurements(
+            model, args.n, reach=reach, where=where, noise_std=args.noise_std, progress=progress
+        )
+    finally:
+        if progress is not None:
+            progress.close()
     plan, unit = mp.plan, model.unit
     spans = ", ".join(f"[{a:.9g}, {b:.9g}]" for a, b in mp.reach)
     print(

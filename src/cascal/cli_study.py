@@ -12,8 +12,9 @@ __all__ = ["Progress", "add_study_parser"]
 class Progress:
     """A bar with rate and ETA on a terminal; sparse plain lines otherwise (logs, CI)."""
 
-    def __init__(self, stream=None, every_s: float = 15.0) -> None:
+    def __init__(self, stream=None, every_s: float = 15.0, unit: str = "trial") -> None:
         self.stream = stream or sys.stderr
+        self.unit = unit
         self.tty = self.stream.isatty()
         self.bar = None
         self.every_s = every_s
@@ -26,7 +27,7 @@ class Progress:
             if self.bar is None:
                 from tqdm import tqdm
 
-                self.bar = tqdm(total=total, initial=done, unit="trial", file=self.stream)
+                self.bar = tqdm(total=total, initial=done, unit=self.unit, file=self.stream)
                 self.start_done = done
             else:
                 self.bar.update(done - self.bar.n)
@@ -41,7 +42,7 @@ class Progress:
         rate = (done - self.start_done) / max(now - self.t0, 1e-9)
         eta = (total - done) / rate if rate > 0 else float("nan")
         print(
-            f"{done}/{total} trials ({100 * done / total:.0f} %), {rate:.1f} trials/s, "
+            f"{done}/{total} {self.unit}s ({100 * done / total:.0f} %), {rate:.1f} {self.unit}s/s, "
             f"ETA {eta:.0f} s",
             file=self.stream,
             flush=True,

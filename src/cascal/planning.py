@@ -22,6 +22,7 @@ the whole plan are recomputed from scratch (:func:`variance_after`,
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -102,6 +103,7 @@ def plan_reference(
     where: object | None = None,
     lower: LowerStage | None = None,
     noise_variance: float | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> Plan:
     """Choose ``k`` reference measurements among test-bed readings ``candidates`` (c,),
     greedily, each lowering the target's summed variance most.
@@ -114,6 +116,7 @@ def plan_reference(
         lower: Target: the variance of the stage below at ``lower.where``.
         noise_variance: Variance of one new measurement; default
             :func:`default_noise_variance`.
+        progress: Called as ``progress(chosen, k)`` after every choice.
     """
     cand = as_positions(candidates, "candidates")
     if cand.size == 0:
@@ -124,23 +127,31 @@ def plan_reference(
         raise InputError("plan_reference: give the target as where= or lower=, not both")
     s2 = _noise(testbed, noise_variance)
     points = as_positions(where, "where") if lower is None else as_positions(lower.upper, "upper")
-    q = points.size
-    _, C = testbed.predict(np.concatenate([points, cand]), return_cov=True)
-    target = _TestbedTarget(C, q) if lower is None else _LowerTarget(lower, C, q)
+    # Stage 0's posterior covariance between the target's points and the candidates (q, c),
+    # among the candidates (c, c), and the target points' variances (q,): updated in place.
+    Vp, Vc = _whitened(testbed, points), _whitened(testbed, cand)
+    cross = testbed.kernel(points, cand) - Vp.T @ Vc
+    among = testbed.kernel(cand) - Vc.T @ Vc
+    var_p = testbed.kernel.diag(points) - np.einsum("ij,ij->j", Vp, Vp)
+    floor = 1e-12 * float(np.max(testbed.kernel.diag(cand)))  # a candidate's least variance
+    target = _TestbedTarget(var_p) if lower is None else _LowerTarget(lower)
     var = [target.variance()]
     chosen = []
     for _ in range(int(k)):
-        d = np.clip(np.diagonal(C)[q:], 0.0, None) + s2
-        j = int(np.argmax(target.gains(C[:q, q:], d)))
-        col = C[:, q + j] / np.sqrt(d[j])
-        target.update(col[:q])
-        C -= np.outer(col, col)
+        d = np.maximum(np.clip(np.diagonal(among), 0.0, None) + s2, floor)
+        j = int(np.argmax(target.gains(cross, d)))
+        col_p, col_c = cross[:, j] / np.sqrt(d[j]), among[:, j] / np.sqrt(d[j])
+        target.update(col_p)
+        cross -= np.outer(col_p, col_c)
+        among -= np.outer(col_c, col_c)
         chosen.append(float(cand[j]))
         var.append(target.variance())
+        if progress is not None:
+            progress(len(chosen), int(k))
     positions = np.asarray(chosen)
     where_out = points if lower is None else as_positions(lower.where, "where")
     if lower is None:
-        before = np.diagonal(testbed.predict(points, return_cov=True)[1])
+        before = var[0]
         after = variance_after(testbed, points, positions, s2)
     else:
         before = lower.gp.predict(where_out, return_std=True)[1] ** 2
@@ -157,6 +168,11 @@ def plan_reference(
     )
 
 
+def _whitened(gp: FittedGP, x: np.ndarray) -> np.ndarray:
+    """``L^-1 K(X, x)`` (n, m): posterior covariances are ``K(a, b) - V_a^T V_b``."""
+    return solve_triangular(gp.L, gp.kernel(gp.x, x), lower=True, check_finite=False)
+
+
 def _noise(testbed: FittedGP, noise_variance: float | None) -> float:
     s2 = default_noise_variance(testbed) if noise_variance is None else float(noise_variance)
     if not (np.isfinite(s2) and s2 >= 0.0):
@@ -165,26 +181,26 @@ def _noise(testbed: FittedGP, noise_variance: float | None) -> float:
 
 
 class _TestbedTarget:
-    """Stage 0's own variance at the first ``q`` points of ``C`` (updated in place)."""
+    """Stage 0's own variance at the target's points ``var`` (q,)."""
 
-    def __init__(self, C: np.ndarray, q: int) -> None:
-        self.C, self.q = C, q
+    def __init__(self, var: np.ndarray) -> None:
+        self.var = var
 
     def gains(self, S: np.ndarray, d: np.ndarray) -> np.ndarray:
         return np.einsum("ij,ij->j", S, S) / d
 
     def update(self, w: np.ndarray) -> None:
-        pass  # the target is the diagonal of C itself
+        self.var = self.var - w * w
 
     def variance(self) -> np.ndarray:
-        return np.diagonal(self.C)[: self.q].copy()
+        return self.var
 
 
 class _LowerTarget:
     """The lower stage's variance at its ``where``; its noise holds stage 0's covariance
-    at its upper readings, the first ``q`` points of ``C``."""
+    at its upper readings (the target's points)."""
 
-    def __init__(self, lower: LowerStage, C: np.ndarray, q: int) -> None:
+    def __init__(self, lower: LowerStage) -> None:
         gp = lower.gp
         self.A = gp.L @ gp.L.T
         self.L = gp.L

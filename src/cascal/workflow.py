@@ -249,6 +249,7 @@ def plan_measurements(
     reach: Sequence[tuple[float, float]] | None = None,
     where: tuple[float, float] | None = None,
     noise_std: float | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> MeasurementPlan:
     """Propose ``k`` further reference measurements of the model's stage 0 (the test bed).
 
@@ -267,6 +268,7 @@ def plan_measurements(
             models only).
         noise_std: Standard deviation of one new reference measurement, in the model's
             unit; default: as precise as the average existing point.
+        progress: Called as ``progress(chosen, k)`` after every choice.
     """
     testbed = model.fitted.models[0]
     if not isinstance(testbed, FittedGP):
@@ -285,7 +287,9 @@ def plan_measurements(
     if len(model.data) == 1:
         lo, hi = span if where is None else _interval(where, "where")
         grid = np.linspace(lo, hi, _PLAN_TARGET) if hi > lo else np.array([lo])
-        plan = plan_reference(testbed, candidates, k, where=grid, noise_variance=s2)
+        plan = plan_reference(
+            testbed, candidates, k, where=grid, noise_variance=s2, progress=progress
+        )
         what = f"stage 0's uncertainty over test-bed readings [{lo:.9g}, {hi:.9g}] {unit}"
         return MeasurementPlan(plan, intervals, candidates.size, what, None)
     if where is not None:
@@ -299,10 +303,12 @@ def plan_measurements(
         x1 = model.data[1].x
         grid = np.linspace(float(x1.min()), float(x1.max()), _PLAN_TARGET)
         target = LowerStage(lower, upper, grid)  # type: ignore[arg-type]
-        plan = plan_reference(testbed, candidates, k, lower=target, noise_variance=s2)
+        plan = plan_reference(
+            testbed, candidates, k, lower=target, noise_variance=s2, progress=progress
+        )
         what = f"stage 1 ({name})'s uncertainty over its readings"
         return MeasurementPlan(plan, intervals, candidates.size, what, name)
-    plan = plan_reference(testbed, candidates, k, where=upper, noise_variance=s2)
+    plan = plan_reference(testbed, candidates, k, where=upper, noise_variance=s2, progress=progress)
     what = f"stage 0's uncertainty at the test-bed readings of stage 1 ({name})"
     return MeasurementPlan(plan, intervals, candidates.size, what, None)
 
