@@ -9,12 +9,14 @@ __all__ = ["add_plan_parser"]
 
 #: Plans of more measurements than this show progress.
 _QUIET = 20
+#: A plan that lowers the RMS u by less than this fraction is reported as of little use.
+_NEGLIGIBLE = 1e-3
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import check_output
+    from .cli import _warn, check_output
     from .cli_study import Progress
     from .errors import InputError
     from .io.atomic import save_figure
@@ -52,6 +54,12 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     print(f"{'now':>5}  {'':>18}  {plan.u_rms[0]:12.4g}  {plan.u_max[0]:15.4g}")
     for k, p in enumerate(plan.positions, 1):
         print(f"{k:5d}  {p:18.9g}  {plan.u_rms[k]:12.4g}  {plan.u_max[k]:15.4g}")
+    if not plan.u_rms[-1] < (1.0 - _NEGLIGIBLE) * plan.u_rms[0]:
+        _warn(
+            "plan",
+            f"these measurements lower the RMS u by less than {100 * _NEGLIGIBLE:g} %: the "
+            "reachable readings tell little about where the uncertainty counts",
+        )
     if args.output is not None:
         cols = {
             "order": np.arange(1, plan.positions.size + 1),

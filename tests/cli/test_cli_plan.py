@@ -45,6 +45,10 @@ def test_reach_limits_the_proposals(linear_model, tmp_path):
     positions = np.loadtxt(out, delimiter=",", skiprows=1)[:, 1]
     assert positions.size == 3
     assert np.all(((positions >= 0.1) & (positions <= 0.2)) | (positions == 0.9))
+    assert "warning" not in res.stderr
+    far = run_cascal("plan", linear_model, "-n", "2", "--reach", "5:6")
+    assert far.returncode == 0, far.stderr
+    assert "lower the RMS u by less than 0.1 %" in far.stderr
 
 
 def test_targets_of_other_models(tmp_path):
