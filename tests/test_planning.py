@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from cascal import Cascade, fit_gp
 from cascal.errors import InputError
 from cascal.planning import (
+    NOISE_FLOOR,
     LowerStage,
     default_noise_variance,
     lower_variance_after,
@@ -204,3 +205,18 @@ def test_bad_input(cascade, kwargs, match):
         args["lower"] = _lower(fitted, trial)
     with pytest.raises(InputError, match=match):
         plan_reference(fitted.models[0], args.pop("candidates"), args.pop("k"), **args)
+
+
+def test_a_noiseless_measurement_is_floored_and_stays_consistent(cascade):
+    """A new measurement's variance is at least NOISE_FLOOR times the prior variance: with
+    none given, 40 steps still agree with the from-scratch recomputation and never rise."""
+    trial, fitted = cascade
+    tb = fitted.models[0]
+    where = np.linspace(0.0, 1.0, 41)
+    plan = plan_reference(tb, np.linspace(0.0, 1.0, 51), 40, where=where, noise_variance=0.0)
+    assert plan.noise_variance == NOISE_FLOOR * tb.kernel.params["variance"]
+    assert np.all(np.diff(plan.u_rms) <= 0)
+    assert_allclose(plan.u_rms[-1], np.sqrt(np.mean(plan.u_after**2)), rtol=1e-6)
+    low = _lower(fitted, trial)
+    plan = plan_reference(tb, np.linspace(0.0, 1.0, 51), 10, lower=low, noise_variance=0.0)
+    assert_allclose(plan.u_rms[-1], np.sqrt(np.mean(plan.u_after**2)), rtol=1e-6)

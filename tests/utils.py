@@ -50,15 +50,15 @@ def fd_gradient(f, theta: np.ndarray, h: float = 1e-5) -> np.ndarray:
     return g
 
 
-def demo_stages():
-    """The linear demo case's stages as the workflow reads them from files (repeats
-    averaged, provenance filled in), reference end first."""
+def demo_stages(case=None):
+    """A demo case's stages (default: the linear one, seed 0) as the workflow reads them
+    from files (repeats averaged, provenance filled in), reference end first."""
     from cascal.demo import linear_demo
     from cascal.io.data import Source, StageData
     from cascal.validation import aggregate_repeats
 
     out = []
-    for stage in linear_demo(0).stages:
+    for stage in (case or linear_demo(0)).stages:
         rep = aggregate_repeats(stage.x, stage.y)
         noise = rep.noise if np.any(rep.counts > 1) else None
         src = Source(stage.file, "ab" * 32, stage.x.size, stage.columns)

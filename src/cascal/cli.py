@@ -46,24 +46,44 @@ def _cmd_example(args: argparse.Namespace) -> int:
     return 0
 
 
-def check_output(path: str | Path, *, folder: bool = False) -> None:
+def check_output(
+    path: str | Path,
+    *,
+    folder: bool = False,
+    option: str = "-o",
+    inputs: Sequence[str | Path] = (),
+) -> None:
     """Refuse an output path that cannot be written, before any work: a folder where a
-    file is due (or a file where a folder is), or a location under a file or in a folder
-    this process may not write to."""
+    file is due (or a file where a folder is), a location under a file or in a folder
+    this process may not write to, or one of the command's ``inputs`` (named by ``option``
+    in messages)."""
     p = Path(path)
     if str(path) == "":
-        raise InputError("-o: expected a file name, got an empty one")
+        raise InputError(f"{option}: expected a file name, got an empty one")
     if folder and p.exists() and not p.is_dir():
-        raise InputError(f"-o {p}: expected a folder, got an existing file")
+        raise InputError(f"{option} {p}: expected a folder, got an existing file")
     if not folder and p.is_dir():
-        raise InputError(f"-o {p}: expected a file name, got an existing folder")
+        raise InputError(f"{option} {p}: expected a file name, got an existing folder")
+    for other in inputs:
+        if _same_file(p, Path(other)):
+            raise InputError(
+                f"{option} {p}: is an input of this command ({other}); not overwritten"
+            )
     parent = (p if folder else p.parent).absolute()
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
-        raise InputError(f"-o {p}: {parent} is a file, not a folder")
+        raise InputError(f"{option} {p}: {parent} is a file, not a folder")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError(f"-o {p}: no permission to write in {parent}")
+        raise InputError(f"{option} {p}: no permission to write in {parent}")
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """True when ``a`` and ``b`` name the same file (links followed), or the same path."""
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
@@ -71,7 +91,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     from .io.modelfile import save_model
     from .workflow import fit_model
 
-    check_output(args.output)
+    check_output(args.output, inputs=args.stages)
     data = _read_stages(args.stages, args)
     model = fit_model(data, **_fit_kwargs(args))
     path = save_model(args.output, model)
@@ -89,7 +109,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     from .io.modelfile import load_model
     from .workflow import correct
 
-    check_output(args.output)
+    check_output(args.output, inputs=(args.model, args.readings))
     model = load_model(args.model)
     table = read_readings(args.readings, column=args.column)
     c = correct(model, table.columns[0])
@@ -167,7 +187,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from .io.modelfile import load_model
     from .report import build_report
 
-    check_output(args.output)
+    check_output(args.output, inputs=(args.model,))
     model = load_model(args.model)
     path = write_text(args.output, build_report(model, source=Path(args.model).name))
     print(f"Report written to {path}")
@@ -445,7 +465,9 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cascal`` console script; returns the exit status."""
-    args = _parser().parse_args(argv)
+    from .cli_plan import join_negative
+
+    args = _parser().parse_args(join_negative(list(sys.argv[1:] if argv is None else argv)))
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)

@@ -19,7 +19,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from .workflow import compensation
 
     out = Path(args.output)
-    check_output(out)
+    check_output(out, inputs=(args.model,))
     if args.tolerance is not None and not (0 < args.tolerance < float("inf")):
         raise InputError(f"--tolerance: expected a positive number, got {args.tolerance!r}")
     if out.suffix not in (".h", ".csv"):

@@ -5,12 +5,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-__all__ = ["add_plan_parser"]
+__all__ = ["add_plan_parser", "join_negative"]
 
 #: Plans of more measurements than this show progress.
 _QUIET = 20
 #: A plan that lowers the RMS u by less than this fraction is reported as of little use.
 _NEGLIGIBLE = 1e-3
+_INTERVAL_OPTIONS = ("--reach", "--where")
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
@@ -22,15 +23,21 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from .io.atomic import save_figure
     from .io.csvout import auto_decimals, write_columns
     from .io.modelfile import load_model
+    from .planning import MAX_MEASUREMENTS
     from .plots import plot_plan
     from .report import display_scale
     from .workflow import plan_measurements
 
-    for path in (args.output, args.plot):
-        if path is not None:
-            check_output(path)
-    if args.plot is not None and Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
-        raise InputError(f"--plot {args.plot}: expected a .png, .svg or .pdf file name")
+    if args.output is not None:
+        check_output(args.output, inputs=(args.model,))
+    if args.plot is not None:
+        check_output(args.plot, option="--plot", inputs=(args.model,))
+        if Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
+            raise InputError(f"--plot {args.plot}: expected a .png, .svg or .pdf file name")
+        if args.output is not None and Path(args.plot).absolute() == Path(args.output).absolute():
+            raise InputError(f"--plot {args.plot}: the same file as -o; give two names")
+    if args.n > MAX_MEASUREMENTS:
+        raise InputError(f"-n: expected at most {MAX_MEASUREMENTS} measurements, got {args.n}")
     model = load_model(args.model)
     reach = [_interval(r, "--reach") for r in args.reach] if args.reach else None
     where = None if args.where is None else _interval(args.where, "--where")
@@ -54,6 +61,12 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     print(f"{'now':>5}  {'':>18}  {plan.u_rms[0]:12.4g}  {plan.u_max[0]:15.4g}")
     for k, p in enumerate(plan.positions, 1):
         print(f"{k:5d}  {p:18.9g}  {plan.u_rms[k]:12.4g}  {plan.u_max[k]:15.4g}")
+    if args.noise_std is not None and plan.noise_variance > args.noise_std**2:
+        _warn(
+            "plan",
+            f"--noise-std {args.noise_std:g} raised to {np.sqrt(plan.noise_variance):.3g} "
+            f"{unit}, the least this plan resolves (10^-4 of stage 0's prior u)",
+        )
     if not plan.u_rms[-1] < (1.0 - _NEGLIGIBLE) * plan.u_rms[0]:
         _warn(
             "plan",
@@ -101,6 +114,18 @@ def _interval(text: str, option: str) -> tuple[float, float]:
     return lo, hi
 
 
+def join_negative(argv: list[str]) -> list[str]:
+    """``--reach -0.04:0.3`` as ``--reach=-0.04:0.3``: argparse takes a value that starts
+    with ``-`` and is not a plain number for an option."""
+    out: list[str] = []
+    for a in argv:
+        if out and out[-1] in _INTERVAL_OPTIONS and a[:1] == "-" and ":" in a:
+            out[-1] = f"{out[-1]}={a}"
+        else:
+            out.append(a)
+    return out
+
+
 def add_plan_parser(sub) -> None:
     """Register ``cascal plan`` on the subparsers ``sub``."""
     from .cli import positive_int
@@ -121,8 +146,9 @@ def add_plan_parser(sub) -> None:
         action="append",
         metavar="LO:HI",
         help="test-bed readings the reference can reach; repeat for several intervals, or "
-        "give a single reading (default: the stretches the reference points cover, gaps "
-        "wider than 3 median spacings left out)",
+        "give a single reading; --reach=-0.04:0.3 or --reach -0.04:0.3 for a negative LO "
+        "(default: the stretches the reference points cover, leaving out gaps wider than 3 "
+        "median spacings and a tenth of the span)",
     )
     p.add_argument(
         "--where",

@@ -29,7 +29,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from . import linalg
-from .errors import InputError
+from .errors import InputError, NumericalError
 from .gp import FittedGP
 from .validation import as_positions
 
@@ -44,6 +44,10 @@ __all__ = [
 
 #: Most measurements one plan proposes.
 MAX_MEASUREMENTS = 1000
+#: Least variance of one new measurement, relative to stage 0's largest prior variance:
+#: below it, the variances a plan reaches are lost in round-off (the covariance updates'
+#: errors are about 1e-16 of the prior variance each).
+NOISE_FLOOR = 1e-8
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,7 +119,8 @@ def plan_reference(
         where: Target: stage 0's variance at these test-bed readings, shape (m,); or
         lower: Target: the variance of the stage below at ``lower.where``.
         noise_variance: Variance of one new measurement; default
-            :func:`default_noise_variance`.
+            :func:`default_noise_variance`; at least :data:`NOISE_FLOOR` times stage 0's
+            largest prior variance (:attr:`Plan.noise_variance` is the one used).
         progress: Called as ``progress(chosen, k)`` after every choice.
     """
     cand = as_positions(candidates, "candidates")
@@ -133,7 +138,9 @@ def plan_reference(
     cross = testbed.kernel(points, cand) - Vp.T @ Vc
     among = testbed.kernel(cand) - Vc.T @ Vc
     var_p = testbed.kernel.diag(points) - np.einsum("ij,ij->j", Vp, Vp)
-    floor = 1e-12 * float(np.max(testbed.kernel.diag(cand)))  # a candidate's least variance
+    prior = float(np.max(testbed.kernel.diag(np.concatenate([cand, points]))))
+    s2 = max(s2, NOISE_FLOOR * prior)
+    floor = NOISE_FLOOR * prior  # a candidate's least variance plus noise
     target = _TestbedTarget(var_p) if lower is None else _LowerTarget(lower)
     var = [target.variance()]
     chosen = []
@@ -216,11 +223,24 @@ class _LowerTarget:
 
     def update(self, w: np.ndarray) -> None:
         self.A -= np.outer(w, w)
-        self.L, _ = linalg.cholesky(self.A, what="lower stage's target covariance")
+        self.L = _factor(self.A)
 
     def variance(self) -> np.ndarray:
         V = solve_triangular(self.L, self.Kg.T, lower=True, check_finite=False)
         return self.kdiag - np.einsum("ij,ij->j", V, V)
+
+
+def _factor(A: np.ndarray) -> np.ndarray:
+    """Cholesky factor of the lower stage's target covariance once stage 0's covariance
+    has been lowered; refused when that leaves it singular to round-off."""
+    try:
+        return linalg.cholesky(A, what="the lower stage's target covariance")[0]
+    except NumericalError:
+        raise NumericalError(
+            "planning: the measurements leave the lower stage's target covariance singular "
+            "to round-off (its own noise is negligible beside stage 0's); plan fewer "
+            "measurements or give a larger noise of a new one"
+        ) from None
 
 
 def variance_after(
@@ -261,7 +281,7 @@ def lower_variance_after(
     after = testbed.kernel(up) - V.T @ V
     gp = lower.gp
     A = gp.L @ gp.L.T - (before - after)
-    L, _ = linalg.cholesky(0.5 * (A + A.T), what="lower stage's target covariance")
+    L = _factor(0.5 * (A + A.T))
     g = as_positions(lower.where, "where")
     W = solve_triangular(L, gp.kernel(g, gp.x).T, lower=True, check_finite=False)
     return gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)

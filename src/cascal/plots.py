@@ -16,6 +16,9 @@ from .planning import Plan, variance_after
 
 __all__ = ["plot_cascade", "plot_cost_distribution", "plot_plan", "plot_stage"]
 
+#: A plan's figure numbers this many of its first proposals.
+_NUMBERED = 12
+
 
 def plot_stage(
     gp: FittedGP,
@@ -209,13 +212,14 @@ def plot_plan(
     for k, p in enumerate(plan.positions, 1):
         ax.axvline(p, color="C3", lw=0.8, alpha=0.7, label="proposed" if k == 1 else None)
     top = float(np.max(now)) * scale
-    for p, orders in _labels(plan.positions, 0.015 * (hi - lo or 1.0)):
+    for p, orders in _labels(plan.positions[:_NUMBERED], 0.015 * (hi - lo or 1.0)):
         ax.annotate(orders, (p, top), fontsize=7, color="C3", ha="center", va="bottom")
     ax.set_ylim(0, 1.15 * top if top > 0 else 1.0)
     ax.set_xlabel(f"test-bed reading [{xunit}]")
     ax.set_ylabel(f"standard uncertainty [{unit}]")
+    numbered = "numbered" if plan.positions.size <= _NUMBERED else f"the first {_NUMBERED} numbered"
     ax.set_title(
-        f"{plan.positions.size} proposed reference measurements (stage 0), numbered in order",
+        f"{plan.positions.size} proposed reference measurements (stage 0), {numbered} in order",
         fontsize=9,
     )
     ax.legend(fontsize=7, loc="lower center", ncol=3, framealpha=0.9)

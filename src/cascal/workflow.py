@@ -46,6 +46,9 @@ _SUMMARY_GRID = 1001
 #: a target's uncertainty is counted.
 _PLAN_CANDIDATES = 1001
 _PLAN_TARGET = 201
+#: Planning: stretches without reference points narrower than this fraction of the span
+#: are not gaps (the reference passed them).
+_PLAN_GAP = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -256,14 +259,15 @@ def plan_measurements(
     The target is, for a ``bayes`` model of two or more stages, stage 1's uncertainty over
     its calibrated readings (stage 0's covariance is part of its noise); for a
     ``homoscedastic`` one, stage 0's uncertainty at stage 1's test-bed readings; for a
-    one-stage model, stage 0's uncertainty over ``where`` (default: its readings' span).
+    one-stage model, stage 0's uncertainty over ``where`` (default: its readings' span, one
+    turn for a periodic model). Periodic models get their proposals on one turn.
 
     Args:
         model: A ``bayes`` or ``homoscedastic`` model.
         k: Measurements to propose.
         reach: Intervals ``(lo, hi)`` of test-bed readings the reference can reach (``lo ==
             hi`` for a single reading); default: the stretches stage 0's readings cover,
-            their gaps (:func:`~cascal.reportdata.find_gaps`) left out.
+            their gaps left out (:func:`_covered`).
         where: Test-bed readings ``(lo, hi)`` to lower the uncertainty over (one-stage
             models only).
         noise_std: Standard deviation of one new reference measurement, in the model's
@@ -277,12 +281,17 @@ def plan_measurements(
             "with method bayes or homoscedastic"
         )
     x0 = model.data[0].x
-    span = (float(x0.min()), float(x0.max()))
-    intervals = tuple(_interval(r, "reach") for r in (reach or _covered(x0)))
-    if noise_std is not None and not (np.isfinite(noise_std) and noise_std >= 0):
+    period = model.period
+    span = (0.0, float(period)) if period is not None else (float(x0.min()), float(x0.max()))
+    if reach is not None and len(reach) == 0:
+        raise InputError("reach: expected at least one interval (lo, hi); None for the default")
+    intervals = tuple(_interval(r, "reach") for r in (reach or _covered(x0, period)))
+    if noise_std is not None and not (0 <= noise_std < 1e150):
         raise InputError(f"noise std: expected a number >= 0 of {model.unit}, got {noise_std!r}")
     s2 = None if noise_std is None else float(noise_std) ** 2
     candidates = _candidates(intervals)
+    if period is not None:  # readings of any turn: one turn's
+        candidates = np.unique(np.mod(candidates, period))
     unit = model.unit
     if len(model.data) == 1:
         lo, hi = span if where is None else _interval(where, "where")
@@ -313,15 +322,26 @@ def plan_measurements(
     return MeasurementPlan(plan, intervals, candidates.size, what, None)
 
 
-def _covered(x: np.ndarray) -> list[tuple[float, float]]:
-    """Stretches of readings ``x`` (n,) without their gaps: where the reference has been."""
+def _covered(x: np.ndarray, period: float | None) -> list[tuple[float, float]]:
+    """Stretches of readings ``x`` (n,) without their gaps: where the reference has been.
+    A gap is wider than :data:`~cascal.reportdata.GAP_FACTOR` median spacings and a tenth
+    of the span (one turn, for a ``period``); without a gap across the seam of a turn, the
+    last stretch runs on across it."""
     from .reportdata import find_gaps  # (it imports this module)
 
-    out, start = [], float(x.min())
-    for a, b in find_gaps(x):
+    xs = np.unique(x)
+    span = float(xs[-1] - xs[0]) if period is None else float(period)
+    gaps = [(a, b) for a, b in find_gaps(xs, period=period) if b - a > _PLAN_GAP * span]
+    out, start, end = [], float(xs[0]), float(xs[-1])
+    for a, b in gaps:
+        if a == end:  # the seam's
+            break
         out.append((start, a))
         start = b
-    return [*out, (start, float(x.max()))]
+    else:
+        if period is not None:
+            end = float(xs[0]) + period
+    return [*out, (start, end)]
 
 
 def _interval(pair: object, name: str) -> tuple[float, float]:
@@ -329,7 +349,7 @@ def _interval(pair: object, name: str) -> tuple[float, float]:
         lo, hi = (float(v) for v in pair)  # type: ignore[union-attr]
     except (TypeError, ValueError):
         raise InputError(f"{name}: expected an interval (lo, hi), got {pair!r}") from None
-    if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi):
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi and np.isfinite(hi - lo)):
         raise InputError(f"{name}: expected finite lo <= hi, got {lo!r}, {hi!r}")
     return lo, hi
 
@@ -340,7 +360,7 @@ def _candidates(intervals: Sequence[tuple[float, float]]) -> np.ndarray:
     total = sum(hi - lo for lo, hi in intervals)
     parts = []
     for lo, hi in intervals:
-        n = 1 if hi == lo else max(2, round(_PLAN_CANDIDATES * (hi - lo) / total))
+        n = 1 if hi == lo else max(2, round(_PLAN_CANDIDATES * ((hi - lo) / total)))
         parts.append(np.linspace(lo, hi, n))
     return np.unique(np.concatenate(parts))
 

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
 from cli_helpers import run_cascal
 
+from cascal.cli_plan import join_negative
+from cascal.demo import rotary_demo
 from cascal.io.modelfile import load_model, save_model
 from cascal.reportdata import find_gaps
-from cascal.workflow import fit_model, plan_measurements
+from cascal.workflow import _covered, fit_model, plan_measurements
 from utils import assert_allclose, demo_stages
 
 
@@ -51,6 +54,55 @@ def test_reach_limits_the_proposals(linear_model, tmp_path):
     assert "lower the RMS u by less than 0.1 %" in far.stderr
 
 
+def test_negative_readings_and_covered_stretches(linear_model, tmp_path):
+    """``--reach -0.04:0.3`` works as typed; the default reach leaves out gaps wider than
+    3 median spacings and a tenth of the span, and runs across a periodic seam."""
+    assert join_negative(["plan", "m", "--reach", "-1:2", "--where", "-3:-1", "-n", "2"]) == [
+        "plan", "m", "--reach=-1:2", "--where=-3:-1", "-n", "2",
+    ]  # fmt: skip
+    out = tmp_path / "p.csv"
+    res = run_cascal("plan", linear_model, "-n", "2", "--reach", "-0.04:0.3", "-o", out)
+    assert res.returncode == 0, res.stderr
+    positions = np.loadtxt(out, delimiter=",", skiprows=1)[:, 1]
+    assert np.all((positions >= -0.04) & (positions <= 0.3))
+    paper = np.delete(np.linspace(0.0, 1.0, 100)[10:90], np.s_[32:48])
+    assert _covered(paper, None) == [(paper[0], paper[31]), (paper[32], paper[-1])]
+    clustered = np.concatenate([np.linspace(0.0, 0.1, 21), np.linspace(0.19, 1.0, 10)])
+    assert _covered(clustered, None) == [(0.0, 1.0)]  # sparse, not a gap
+    full = np.arange(0.0, 360.0, 5.0)
+    assert _covered(full, 360.0) == [(0.0, 360.0)]
+    seam = np.arange(25.0, 340.0, 5.0)
+    assert _covered(seam, 360.0) == [(25.0, 335.0)]
+
+
+def test_periodic_proposals_lie_on_one_turn(tmp_path):
+    """A rotary model whose reference could not reach the seam: the default reach keeps
+    off it; given a reach across it, the proposals lie there, on one turn."""
+    stages = demo_stages(rotary_demo(0))
+    model = fit_model(stages, kernel="periodic", period=360.0, unit="deg", n_restarts=2)
+    mp = plan_measurements(model, 3)
+    lo, hi = float(model.data[0].x.min()), float(model.data[0].x.max())
+    assert np.all((mp.plan.positions >= lo) & (mp.plan.positions <= hi))
+    mp = plan_measurements(model, 3, reach=[(340.0, 380.0)])
+    p = mp.plan.positions
+    assert np.all((p >= 0.0) & (p < 360.0) & ((p >= 340.0) | (p <= 20.0)))
+    assert mp.plan.u_rms[-1] < 0.9 * mp.plan.u_rms[0]  # the seam is where u is largest
+
+
+def test_outputs_never_overwrite_inputs(linear_files, linear_model, tmp_path):
+    files, readings = linear_files
+    for args in (
+        ("correct", linear_model, readings, "-o", readings),
+        ("export", linear_model, "-o", linear_model),
+        ("report", linear_model, "-o", linear_model),
+        ("fit", *files, "-o", files[0]),
+    ):
+        before = Path(args[-1]).read_bytes()
+        res = run_cascal(*args)
+        assert res.returncode == 2 and "is an input of this command" in res.stderr, args
+        assert Path(args[-1]).read_bytes() == before
+
+
 def test_targets_of_other_models(tmp_path):
     """A one-stage model lowers stage 0's u over ``where``; a homoscedastic one at stage
     1's test-bed readings; a lut model is refused."""
@@ -85,7 +137,18 @@ def bad_runs(linear_model, tmp_path_factory):
         "reach_three": ([linear_model, "--reach", "1:2:3"], ["LO:HI"]),
         "where_two_stages": ([linear_model, "--where", "0:1"], ["one-stage model"]),
         "noise_negative": ([linear_model, "--noise-std", "-1"], ["noise std", ">= 0"]),
-        "too_many": ([linear_model, "-n", "1001"], ["1 to 1000"]),
+        "too_many": ([linear_model, "-n", "1001"], ["-n", "at most 1000"]),
+        "noise_huge": ([linear_model, "--noise-std", "1e200"], ["noise std"]),
+        "reach_overflow": ([linear_model, "--reach=-1e308:1e308"], ["reach", "finite"]),
+        "plot_is_output": (
+            [linear_model, "--plot", tmp / "same.png", "-o", tmp / "same.png"],
+            ["same file as -o"],
+        ),
+        "plot_folder": (
+            [linear_model, "--plot", tmp / "folder.csv"],
+            ["--plot", "existing folder"],
+        ),
+        "output_is_model": ([linear_model, "-o", linear_model], ["is an input"]),
         "plot_suffix": ([linear_model, "--plot", tmp / "p.txt"], [".png"]),
         "output_folder": ([linear_model, "-o", tmp / "folder.csv"], ["existing folder"]),
         "lut": ([lut], ["lut", "no uncertainty"]),
@@ -94,7 +157,7 @@ def bad_runs(linear_model, tmp_path_factory):
     with ThreadPoolExecutor(4) as pool:
         futures = {
             name: pool.submit(
-                run_cascal, "plan", *args, "-o" if "-o" not in args else "--plot", tmp / f"{name}.x"
+                run_cascal, "plan", *args, *([] if "-o" in args else ["-o", tmp / f"{name}.x"])
             )
             for name, (args, _) in cases.items()
         }
@@ -113,6 +176,11 @@ def bad_runs(linear_model, tmp_path_factory):
         "where_two_stages",
         "noise_negative",
         "too_many",
+        "noise_huge",
+        "reach_overflow",
+        "plot_is_output",
+        "plot_folder",
+        "output_is_model",
         "plot_suffix",
         "output_folder",
         "lut",
