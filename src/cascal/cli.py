@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -165,11 +166,21 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     print(f"Test bed fitted once: {tb_model}")
     options = dict(_fit_kwargs(args), x_column=_one(args.x_column), y_column=_one(args.y_column))
 
+    t0, done = time.perf_counter(), [0]
+
     def report(r) -> None:
+        done[0] += 1
+        rate = done[0] / max(time.perf_counter() - t0, 1e-9)
+        eta = (len(files) - done[0]) / rate
+        where = f"[{done[0]}/{len(files)}, {rate:.2g} devices/s, ETA {eta:.0f} s]"
         if r.error:
-            _warn("fit-devices", f"skipped device {r.device}: {r.error}")
+            _warn("fit-devices", f"{where} skipped device {r.device}: {r.error}")
         else:
-            print(f"  {r.device}: rms correction {r.rms_correction:.4g}, largest u {r.max_u:.4g}")
+            print(
+                f"  {where} {r.device}: rms correction {r.rms_correction:.4g}, "
+                f"largest u {r.max_u:.4g}",
+                flush=True,
+            )
 
     jobs = args.jobs or os.cpu_count() or 1
     results = fit_devices(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 
 import pytest
 from cli_helpers import run_cascal
@@ -35,6 +36,11 @@ def test_bad_device_is_reported_and_skipped(fleet):
     assert "Traceback" not in res.stderr
     assert "skipped device device99: " in res.stderr and "row 3" in res.stderr
     assert "3 of 4 devices calibrated" in res.stdout
+    counts = sorted(
+        int(m)
+        for m in re.findall(r"\[(\d)/4, [0-9.e+-]+ devices/s, ETA \d+ s\]", res.stdout + res.stderr)
+    )
+    assert counts == [1, 2, 3, 4]  # each device's line says how far the fleet is
     assert sorted(p.name for p in (out / "devices").iterdir()) == [
         "device01.json", "device02.json", "device03.json",
     ]  # fmt: skip
