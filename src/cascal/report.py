@@ -16,9 +16,12 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ._version import __version__
+from .errors import CascalError
 from .gp import Z95
 from .io.modelfile import CalibrationModel
+from .plots import plot_plan
 from .reportdata import CurveView, StageView, correction_curve, stage_views
+from .workflow import plan_measurements
 
 __all__ = ["build_report", "correction_figure", "display_scale", "stage_figure"]
 
@@ -225,12 +228,55 @@ def build_report(
             f"<p>Largest u over the calibrated range: {_num(float(np.max(curve.u)))} {e(unit)}.</p>"
         )
     parts.append(_img(correction_figure(curve, unit=unit, period=model.period), "final correction"))
+    if curve.u is not None:
+        parts += _plan_section(model)
     body = "\n".join(parts)
     return (
         '<!doctype html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>{e(title)}</title><style>{_CSS}</style></head>\n<body>\n{body}\n</body></html>\n"
     )
 
+
+def _plan_section(model: CalibrationModel) -> list[str]:
+    """Where the next reference measurements help most (``cascal plan``'s defaults)."""
+    e, unit = html.escape, model.unit
+    out = ["<h2>Where to measure next with the reference</h2>"]
+    try:
+        mp = plan_measurements(model, _PLAN_MEASUREMENTS)
+    except CascalError as exc:
+        return [*out, f"<p>No plan: {e(str(exc))}</p>"]
+    plan = mp.plan
+    reach = ", ".join(f"[{_num(a)}, {_num(b)}]" for a, b in mp.reach)
+    out.append(
+        f"<p>{plan.positions.size} further reference measurements of stage 0, chosen one at a "
+        f"time among the test-bed readings the reference points cover ({e(reach)} {e(unit)}), "
+        f"each where it most lowers {e(mp.target)}; each with a standard deviation of "
+        f"{_num(float(np.sqrt(plan.noise_variance)))} {e(unit)}. <code>cascal plan</code> "
+        "proposes more, or within other reach.</p>"
+    )
+    rows = [("now", "", _num(plan.u_rms[0]), _num(plan.u_max[0]))]
+    rows += [
+        (str(k), _num(p), _num(plan.u_rms[k]), _num(plan.u_max[k]))
+        for k, p in enumerate(plan.positions, 1)
+    ]
+    out.append(
+        _table(["order", f"test-bed reading [{unit}]", "RMS u after", "largest u after"], rows)
+    )
+    scale, shown = display_scale(unit, float(plan.u_max[0]))
+    fig = plot_plan(
+        plan,
+        model.fitted.models[0],  # type: ignore[arg-type]
+        list(mp.reach),
+        lower_name=mp.lower_name,
+        scale=scale,
+        unit=shown,
+        xunit=unit,
+    )
+    return [*out, _img(fig, "proposed reference measurements")]
+
+
+#: Reference measurements the report proposes.
+_PLAN_MEASUREMENTS = 5
 
 _CSS = (
     "body{font-family:sans-serif;max-width:60em;margin:2em auto;color:#222}"

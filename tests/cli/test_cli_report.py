@@ -27,15 +27,32 @@ def report(linear_model, tmp_path_factory):
 def test_report_is_self_contained(report):
     text = report.read_text()
     srcs = re.findall(r'src="([^"]*)"', text)
-    assert len(srcs) == 3  # two stages and the final correction
+    assert len(srcs) == 4  # two stages, the final correction and the plan
     assert all(s.startswith("data:image/png;base64,") for s in srcs)
     assert not re.search(r'(src|href)="(https?:|file:|/)', text)
     for s in srcs:
         img = Image.open(io.BytesIO(base64.b64decode(s.split(",", 1)[1])))
         assert img.size[0] > 500 and img.size[1] > 300
     for words in ("Stage 0", "Stage 1", "length_scale", "noise_variance", "SHA-256",
-                  "Stretches where the reference could not measure", "U = 2u"):  # fmt: skip
+                  "Stretches where the reference could not measure", "U = 2u",
+                  "Where to measure next with the reference"):  # fmt: skip
         assert words in text
+
+
+def test_report_plan_is_the_commands(report, linear_model):
+    """The report's plan is ``cascal plan``'s default one; a lut model's report has none."""
+    from cascal.io.modelfile import load_model
+    from cascal.report import build_report
+    from cascal.workflow import fit_model, plan_measurements
+    from utils import demo_stages
+
+    plan = plan_measurements(load_model(linear_model), 5).plan
+    text = report.read_text()
+    section = text[text.index("Where to measure next") :]
+    for p in plan.positions:
+        assert f"<td>{p:.6g}</td>" in section
+    lut = build_report(fit_model(demo_stages(), method="lut"))
+    assert "Where to measure next" not in lut
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (apt-get install chromium)")
