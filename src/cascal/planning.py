@@ -26,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import solve_triangular
+from scipy.linalg import lapack, solve_triangular
 
 from . import linalg
 from .errors import InputError, NumericalError
@@ -139,16 +139,15 @@ def plan_reference(
     among = testbed.kernel(cand) - Vc.T @ Vc
     var_p = testbed.kernel.diag(points) - np.einsum("ij,ij->j", Vp, Vp)
     prior = float(np.max(testbed.kernel.diag(np.concatenate([cand, points]))))
-    s2 = max(s2, NOISE_FLOOR * prior)
-    floor = NOISE_FLOOR * prior  # a candidate's least variance plus noise
-    target = _TestbedTarget(var_p) if lower is None else _LowerTarget(lower)
+    s2 = max(s2, NOISE_FLOOR * prior)  # also keeps every candidate's variance plus noise up
+    target = _TestbedTarget(var_p, cross) if lower is None else _LowerTarget(lower, cross)
     var = [target.variance()]
     chosen = []
     for _ in range(int(k)):
-        d = np.maximum(np.clip(np.diagonal(among), 0.0, None) + s2, floor)
+        d = np.clip(np.diagonal(among), 0.0, None) + s2
         j = int(np.argmax(target.gains(cross, d)))
         col_p, col_c = cross[:, j] / np.sqrt(d[j]), among[:, j] / np.sqrt(d[j])
-        target.update(col_p)
+        target.update(cross, j, float(d[j]), col_c)
         cross -= np.outer(col_p, col_c)
         among -= np.outer(col_c, col_c)
         chosen.append(float(cand[j]))
@@ -190,13 +189,14 @@ def _noise(testbed: FittedGP, noise_variance: float | None) -> float:
 class _TestbedTarget:
     """Stage 0's own variance at the target's points ``var`` (q,)."""
 
-    def __init__(self, var: np.ndarray) -> None:
+    def __init__(self, var: np.ndarray, S: np.ndarray) -> None:
         self.var = var
 
     def gains(self, S: np.ndarray, d: np.ndarray) -> np.ndarray:
         return np.einsum("ij,ij->j", S, S) / d
 
-    def update(self, w: np.ndarray) -> None:
+    def update(self, S: np.ndarray, j: int, d: float, col_c: np.ndarray) -> None:
+        w = S[:, j] / np.sqrt(d)
         self.var = self.var - w * w
 
     def variance(self) -> np.ndarray:
@@ -204,43 +204,51 @@ class _TestbedTarget:
 
 
 class _LowerTarget:
-    """The lower stage's variance at its ``where``; its noise holds stage 0's covariance
-    at its upper readings (the target's points)."""
+    """The lower stage's variance at its ``where`` (m,); its noise holds stage 0's
+    covariance at its upper readings, the target's points. With ``A`` its target
+    covariance (n, n) and ``S`` stage 0's cross-covariance between those points and the
+    candidates (n, c), it keeps ``P = A^-1 S`` and ``G = K_g P`` and updates them (and the
+    variance) by rank-one terms: O((n + m) c) per measurement, no refactorisation."""
 
-    def __init__(self, lower: LowerStage) -> None:
+    def __init__(self, lower: LowerStage, S: np.ndarray) -> None:
         gp = lower.gp
-        self.A = gp.L @ gp.L.T
-        self.L = gp.L
-        self.Kg = gp.kernel(as_positions(lower.where, "where"), gp.x)
-        self.kdiag = gp.kernel.diag(as_positions(lower.where, "where"))
+        g = as_positions(lower.where, "where")
+        self.Kg = gp.kernel(g, gp.x)
+        W = solve_triangular(gp.L, self.Kg.T, lower=True, check_finite=False)
+        self.var = gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
+        self.P = linalg.cho_solve(gp.L, S)
+        self.G = self.Kg @ self.P
 
     def gains(self, S: np.ndarray, d: np.ndarray) -> np.ndarray:
-        W = S / np.sqrt(d)
-        M = linalg.cho_solve(self.L, W)
-        fit = np.einsum("ij,ij->j", W, M)
-        KM = self.Kg @ M
-        return np.einsum("ij,ij->j", KM, KM) / np.clip(1.0 - fit, 1e-12, None)
+        # w = S_j / sqrt(d_j): |K_g A^-1 w|^2 / (1 - w^T A^-1 w)
+        fit = np.einsum("ij,ij->j", S, self.P) / d
+        return np.einsum("ij,ij->j", self.G, self.G) / d / np.clip(1.0 - fit, 1e-12, None)
 
-    def update(self, w: np.ndarray) -> None:
-        self.A -= np.outer(w, w)
-        self.L = _factor(self.A)
+    def update(self, S: np.ndarray, j: int, d: float, col_c: np.ndarray) -> None:
+        # A' = A - w w^T: A'^-1 = A^-1 + a a^T / beta, a = A^-1 w; S' = S - w col_c^T.
+        w, a = S[:, j] / np.sqrt(d), self.P[:, j] / np.sqrt(d)
+        beta = max(1.0 - float(w @ a), 1e-12)
+        aS = a @ S - float(a @ w) * col_c  # a^T S'
+        Ka = self.Kg @ a
+        self.P += np.outer(a, aS / beta - col_c)
+        self.G += np.outer(Ka, aS / beta - col_c)
+        self.var = self.var - Ka * Ka / beta
 
     def variance(self) -> np.ndarray:
-        V = solve_triangular(self.L, self.Kg.T, lower=True, check_finite=False)
-        return self.kdiag - np.einsum("ij,ij->j", V, V)
+        return self.var
 
 
 def _factor(A: np.ndarray) -> np.ndarray:
     """Cholesky factor of the lower stage's target covariance once stage 0's covariance
-    has been lowered; refused when that leaves it singular to round-off."""
-    try:
-        return linalg.cholesky(A, what="the lower stage's target covariance")[0]
-    except NumericalError:
+    has been lowered; refused (no jitter) when that leaves it singular to round-off."""
+    L, info = lapack.dpotrf(A, lower=1, clean=1)
+    if info != 0 or not np.all(np.isfinite(np.diagonal(L))):
         raise NumericalError(
             "planning: the measurements leave the lower stage's target covariance singular "
             "to round-off (its own noise is negligible beside stage 0's); plan fewer "
             "measurements or give a larger noise of a new one"
-        ) from None
+        )
+    return L
 
 
 def variance_after(
@@ -270,18 +278,28 @@ def lower_variance_after(
     lower: LowerStage, testbed: FittedGP, positions: object, noise_variance: float
 ) -> np.ndarray:
     """The lower stage's posterior variance at ``lower.where`` (m,) once stage 0 has the
-    reference measurements at ``positions``: its noise keeps everything but stage 0's
-    covariance at ``lower.upper``, which is recomputed; shape (m,)."""
+    reference measurements at ``positions`` (k,), all at once: stage 0's covariance at
+    ``lower.upper`` falls by ``Z Z^T`` (``Z = C_uk R^-T``, ``R R^T = C_kk + s2 I``, ``C``
+    stage 0's posterior covariance), and the lower stage's target covariance ``A`` with
+    it; by the Woodbury identity the variance falls by the diagonal of
+    ``K_g A^-1 Z (I - Z^T A^-1 Z)^-1 Z^T A^-1 K_g^T`` over its value now. O(n^2 k)."""
     pos = as_positions(positions, "positions")
     up = as_positions(lower.upper, "upper")
-    _, before = testbed.predict(up, return_cov=True)
-    L0 = _enlarged_factor(testbed, pos, noise_variance)
-    xa = np.concatenate([testbed.x, pos])
-    V = solve_triangular(L0, testbed.kernel(xa, up), lower=True, check_finite=False)
-    after = testbed.kernel(up) - V.T @ V
     gp = lower.gp
-    A = gp.L @ gp.L.T - (before - after)
-    L = _factor(0.5 * (A + A.T))
     g = as_positions(lower.where, "where")
-    W = solve_triangular(L, gp.kernel(g, gp.x).T, lower=True, check_finite=False)
-    return gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
+    Kg = gp.kernel(g, gp.x)
+    W = solve_triangular(gp.L, Kg.T, lower=True, check_finite=False)
+    var = gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
+    if pos.size == 0:
+        return var
+    Vu, Vk = _whitened(testbed, up), _whitened(testbed, pos)
+    Cuk = testbed.kernel(up, pos) - Vu.T @ Vk
+    Ckk = testbed.kernel(pos) - Vk.T @ Vk
+    Ckk.flat[:: pos.size + 1] += noise_variance
+    R = _factor(Ckk)
+    Z = solve_triangular(R, Cuk.T, lower=True, check_finite=False).T  # (n, k)
+    Q = linalg.cho_solve(gp.L, Z)
+    M = -(Z.T @ Q)
+    M.flat[:: pos.size + 1] += 1.0
+    T = solve_triangular(_factor(0.5 * (M + M.T)), (Kg @ Q).T, lower=True, check_finite=False)
+    return var - np.einsum("ij,ij->j", T, T)
