@@ -66,7 +66,7 @@ def check_output(
     if not folder and p.is_dir():
         raise InputError(f"{option} {p}: expected a file name, got an existing folder")
     for other in inputs:
-        if _same_file(p, Path(other)):
+        if p.exists() and same_file(p, other):
             raise InputError(
                 f"{option} {p}: is an input of this command ({other}); not overwritten"
             )
@@ -79,12 +79,45 @@ def check_output(
         raise InputError(f"{option} {p}: no permission to write in {parent}")
 
 
-def _same_file(a: Path, b: Path) -> bool:
-    """True when ``a`` and ``b`` name the same file (links followed), or the same path."""
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """True when paths ``a`` and ``b`` name the same regular file, or the same location
+    (links and ``..`` resolved) when one does not exist yet. Devices such as
+    ``/dev/stdout`` are never the same file as anything."""
+    pa, pb = Path(a), Path(b)
     try:
-        return a.exists() and b.exists() and os.path.samefile(a, b)
+        if pa.exists() and pb.exists():
+            return pa.is_file() and pb.is_file() and os.path.samefile(pa, pb)
+        return pa.resolve() == pb.resolve()
     except OSError:
         return False
+
+
+def join_negative(argv: list[str]) -> list[str]:
+    """``--reach -0.04:0.3`` as ``--reach=-0.04:0.3`` (for the options that take a reading
+    or an interval): argparse takes a value that starts with ``-`` and is not a plain
+    decimal for an option. Nothing after ``--`` is changed."""
+    from .cli_plan import INTERVAL_OPTIONS
+
+    out: list[str] = []
+    for i, a in enumerate(argv):
+        if a == "--":
+            return out + argv[i:]
+        if out and out[-1] in INTERVAL_OPTIONS and _negative_value(a):
+            out[-1] = f"{out[-1]}={a}"
+        else:
+            out.append(a)
+    return out
+
+
+def _negative_value(text: str) -> bool:
+    """True for ``-X`` or ``-X:Y`` with numbers X and Y."""
+    if text[:1] != "-":
+        return False
+    try:
+        [float(p) for p in text.split(":")]
+    except ValueError:
+        return False
+    return True
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
@@ -138,13 +171,13 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     if n_out:
         first = int(table.rows[np.argmax(out)])
         what = "left empty" if args.out_of_range == "empty" else "extrapolated, do not trust them"
-        _warn(
+        warn(
             "correct",
             f"{n_out} of {out.size} readings lie {where} (first: {args.readings}, row {first}); "
             f"flagged in column out_of_range and {what}",
         )
     if not gp:
-        _warn("correct", "method lut gives no uncertainty: columns u and U are left empty")
+        warn("correct", "method lut gives no uncertainty: columns u and U are left empty")
     print(f"Corrected {out.size} readings -> {path} ({decimals} decimals)")
     return 0
 
@@ -174,7 +207,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         eta = (len(files) - done[0]) / rate
         where = f"[{done[0]}/{len(files)}, {rate:.2g} devices/s, ETA {eta:.0f} s]"
         if r.error:
-            _warn("fit-devices", f"{where} skipped device {r.device}: {r.error}")
+            warn("fit-devices", f"{where} skipped device {r.device}: {r.error}")
         else:
             print(
                 f"  {where} {r.device}: rms correction {r.rms_correction:.4g}, "
@@ -311,7 +344,7 @@ def _fleet_csv(results) -> str:
     return buf.getvalue()
 
 
-def _warn(command: str, message: str) -> None:
+def warn(command: str, message: str) -> None:
     sys.stdout.flush()
     print(f"cascal {command}: warning: {message}", file=sys.stderr)
 
@@ -476,8 +509,6 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cascal`` console script; returns the exit status."""
-    from .cli_plan import join_negative
-
     args = _parser().parse_args(join_negative(list(sys.argv[1:] if argv is None else argv)))
     func: Callable[[argparse.Namespace], int] = args.func
     try:

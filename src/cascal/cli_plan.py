@@ -5,27 +5,25 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-__all__ = ["add_plan_parser", "join_negative"]
+__all__ = ["INTERVAL_OPTIONS", "add_plan_parser"]
 
 #: Plans of more measurements than this show progress.
 _QUIET = 20
 #: A plan that lowers the RMS u by less than this fraction is reported as of little use.
 _NEGLIGIBLE = 1e-3
-_INTERVAL_OPTIONS = ("--reach", "--where")
+#: Options whose value may start with a minus sign (see :func:`cascal.cli.join_negative`).
+INTERVAL_OPTIONS = ("--reach", "--where")
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import _warn, check_output
+    from .cli import check_output, same_file, warn
     from .cli_study import Progress
     from .errors import InputError
-    from .io.atomic import save_figure
     from .io.csvout import auto_decimals, write_columns
     from .io.modelfile import load_model
     from .planning import MAX_MEASUREMENTS
-    from .plots import plot_plan
-    from .report import display_scale
     from .workflow import plan_measurements
 
     if args.output is not None:
@@ -34,10 +32,12 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         check_output(args.plot, option="--plot", inputs=(args.model,))
         if Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
             raise InputError(f"--plot {args.plot}: expected a .png, .svg or .pdf file name")
-        if args.output is not None and Path(args.plot).absolute() == Path(args.output).absolute():
+        if args.output is not None and same_file(args.plot, args.output):
             raise InputError(f"--plot {args.plot}: the same file as -o; give two names")
     if args.n > MAX_MEASUREMENTS:
         raise InputError(f"-n: expected at most {MAX_MEASUREMENTS} measurements, got {args.n}")
+    if args.noise_std is not None and not (0 <= args.noise_std < 1e150):
+        raise InputError(f"--noise-std: expected a number >= 0 below 1e150, got {args.noise_std}")
     model = load_model(args.model)
     reach = [_interval(r, "--reach") for r in args.reach] if args.reach else None
     where = None if args.where is None else _interval(args.where, "--where")
@@ -62,13 +62,13 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     for k, p in enumerate(plan.positions, 1):
         print(f"{k:5d}  {p:18.9g}  {plan.u_rms[k]:12.4g}  {plan.u_max[k]:15.4g}")
     if args.noise_std is not None and plan.noise_variance > args.noise_std**2:
-        _warn(
+        warn(
             "plan",
             f"--noise-std {args.noise_std:g} raised to {np.sqrt(plan.noise_variance):.3g} "
             f"{unit}, the least this plan resolves (10^-4 of stage 0's prior u)",
         )
     if not plan.u_rms[-1] < (1.0 - _NEGLIGIBLE) * plan.u_rms[0]:
-        _warn(
+        warn(
             "plan",
             f"these measurements lower the RMS u by less than {100 * _NEGLIGIBLE:g} %: the "
             "reachable readings tell little about where the uncertainty counts",
@@ -83,23 +83,17 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         decimals = auto_decimals([plan.positions], plan.u_rms[1:])
         print(f"Plan written to {write_columns(args.output, cols, decimals=decimals)}")
     if args.plot is not None:
-        scale, shown = display_scale(unit, float(plan.u_max[0]))
-        fig = plot_plan(
-            plan,
-            model.fitted.models[0],  # type: ignore[arg-type]
-            list(mp.reach),
-            lower_name=mp.lower_name,
-            scale=scale,
-            unit=shown,
-            xunit=unit,
-        )
-        print(f"Figure written to {save_figure(fig, args.plot, dpi=130)}")
+        from .io.atomic import save_figure
+        from .report import plan_figure
+
+        print(f"Figure written to {save_figure(plan_figure(model, mp), args.plot, dpi=130)}")
     return 0
 
 
 def _interval(text: str, option: str) -> tuple[float, float]:
-    """``LO:HI`` (or a single reading ``X``) as a pair of floats."""
+    """``LO:HI`` (or a single reading ``X``) as a checked pair of floats."""
     from .errors import InputError
+    from .planning import check_interval
 
     parts = text.split(":")
     try:
@@ -108,25 +102,10 @@ def _interval(text: str, option: str) -> tuple[float, float]:
         values = []
     if len(values) not in (1, 2) or len(values) != len(parts):
         raise InputError(f"{option} {text!r}: expected LO:HI or a single reading")
-    lo, hi = values[0], values[-1]
-    if not (lo <= hi and abs(lo) < float("inf") and abs(hi) < float("inf")):
-        raise InputError(f"{option} {text!r}: expected finite LO <= HI")
-    return lo, hi
+    return check_interval((values[0], values[-1]), f"{option} {text!r}")
 
 
-def join_negative(argv: list[str]) -> list[str]:
-    """``--reach -0.04:0.3`` as ``--reach=-0.04:0.3``: argparse takes a value that starts
-    with ``-`` and is not a plain number for an option."""
-    out: list[str] = []
-    for a in argv:
-        if out and out[-1] in _INTERVAL_OPTIONS and a[:1] == "-" and ":" in a:
-            out[-1] = f"{out[-1]}={a}"
-        else:
-            out.append(a)
-    return out
-
-
-def add_plan_parser(sub) -> None:
+def add_plan_parser(sub: argparse._SubParsersAction) -> None:
     """Register ``cascal plan`` on the subparsers ``sub``."""
     from .cli import positive_int
 
@@ -154,7 +133,7 @@ def add_plan_parser(sub) -> None:
         "--where",
         metavar="LO:HI",
         help="test-bed readings where the uncertainty counts (one-stage models; default: "
-        "the span of the reference points)",
+        "the span of the reference points, one turn for a periodic model)",
     )
     p.add_argument(
         "--noise-std",

@@ -16,8 +16,9 @@ where it most lowers the summed posterior variance of a target:
 
 Greedy choice is the usual sequential design for a summed posterior variance; a point may
 be chosen twice (a repeat averages the reference's noise down). The uncertainties after
-the whole plan are recomputed from scratch (:func:`variance_after`,
-:func:`lower_variance_after`), not from the updates.
+the whole plan are recomputed with all its measurements at once, not from the step-by-step
+updates: stage 0's from a new Cholesky factor (:func:`variance_after`), the stage below's
+by one Woodbury block update (:func:`lower_variance_after`).
 """
 
 from __future__ import annotations
@@ -34,14 +35,28 @@ from .gp import FittedGP
 from .validation import as_positions
 
 __all__ = [
+    "CANDIDATES",
+    "GAP_FACTOR",
+    "REACH_GAP",
     "LowerStage",
     "Plan",
+    "candidate_readings",
+    "check_interval",
+    "covered",
     "default_noise_variance",
+    "find_gaps",
     "lower_variance_after",
     "plan_reference",
     "variance_after",
 ]
 
+#: A spacing this many times the median spacing of stage 0's readings counts as a gap.
+GAP_FACTOR = 3.0
+#: Stretches without reference points narrower than this fraction of the span are not
+#: gaps for a plan's default reach (the reference passed them).
+REACH_GAP = 0.1
+#: Candidate test-bed readings over the reachable intervals, about.
+CANDIDATES = 1001
 #: Most measurements one plan proposes.
 MAX_MEASUREMENTS = 1000
 #: Least variance of one new measurement, relative to stage 0's largest prior variance:
@@ -79,7 +94,7 @@ class Plan:
         where: Readings at which the target's uncertainty is counted, shape (m,): test-bed
             readings, or the lower stage's own readings.
         u_before: Target's standard uncertainty at ``where`` now, shape (m,).
-        u_after: The same after all ``positions`` are measured, recomputed from scratch,
+        u_after: The same after all ``positions`` are measured, recomputed at once,
             shape (m,).
     """
 
@@ -303,3 +318,62 @@ def lower_variance_after(
     M.flat[:: pos.size + 1] += 1.0
     T = solve_triangular(_factor(0.5 * (M + M.T)), (Kg @ Q).T, lower=True, check_finite=False)
     return var - np.einsum("ij,ij->j", T, T)
+
+
+def find_gaps(
+    x: np.ndarray, *, factor: float = GAP_FACTOR, period: float | None = None
+) -> list[tuple[float, float]]:
+    """Stretches between neighbouring readings ``x`` (n,) wider than ``factor`` times the
+    median spacing; with ``period``, also the stretch across the seam (ending above it)."""
+    xs = np.unique(np.asarray(x, dtype=float))
+    if xs.size < 3:
+        return []
+    d = np.diff(xs)
+    limit = factor * float(np.median(d))
+    gaps = [(float(xs[i]), float(xs[i + 1])) for i in np.flatnonzero(d > limit)]
+    if period is not None and xs[0] + period - xs[-1] > limit:
+        gaps.append((float(xs[-1]), float(xs[0] + period)))
+    return gaps
+
+
+def covered(x: np.ndarray, period: float | None = None) -> list[tuple[float, float]]:
+    """Stretches of readings ``x`` (n,) without their gaps: where the reference has been.
+    A gap is wider than :data:`GAP_FACTOR` median spacings and :data:`REACH_GAP` of the
+    span (one turn, for a ``period``); without a gap across the seam of a turn, the last
+    stretch runs on across it."""
+    xs = np.unique(x)
+    span = float(xs[-1] - xs[0]) if period is None else float(period)
+    gaps = [(a, b) for a, b in find_gaps(xs, period=period) if b - a > REACH_GAP * span]
+    out, start, end = [], float(xs[0]), float(xs[-1])
+    for a, b in gaps:
+        if a == end:  # the seam's
+            break
+        out.append((start, a))
+        start = b
+    else:
+        if period is not None:
+            end = float(xs[0]) + period
+    return [*out, (start, end)]
+
+
+def check_interval(pair: object, name: str) -> tuple[float, float]:
+    """``(lo, hi)`` as floats, finite, ``lo <= hi`` and a finite width; ``name`` is used in
+    the message."""
+    try:
+        lo, hi = (float(v) for v in pair)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected an interval (lo, hi), got {pair!r}") from None
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi and np.isfinite(hi - lo)):
+        raise InputError(f"{name}: expected finite lo <= hi, got {lo!r}, {hi!r}")
+    return lo, hi
+
+
+def candidate_readings(intervals: list[tuple[float, float]] | tuple) -> np.ndarray:
+    """About :data:`CANDIDATES` readings over the intervals ``(lo, hi)``, in proportion to
+    their lengths (both ends of each; a point interval gives its one reading), sorted."""
+    total = sum(hi - lo for lo, hi in intervals)
+    parts = []
+    for lo, hi in intervals:
+        n = 1 if hi == lo else max(2, round(CANDIDATES * ((hi - lo) / total)))
+        parts.append(np.linspace(lo, hi, n))
+    return np.unique(np.concatenate(parts))

@@ -177,6 +177,7 @@ def plot_plan(
     scale: float = 1.0,
     unit: str = "m",
     xunit: str = "m",
+    period: float | None = None,
 ) -> Figure:
     """Proposed reference measurements: stage 0's standard uncertainty now and after them,
     with the existing reference points, the reachable intervals and the proposals; and,
@@ -188,17 +189,22 @@ def plot_plan(
         reach: Intervals ``(lo, hi)`` of test-bed readings the reference can reach.
         lower_name: Name of the lower stage when it is the plan's target, else None.
         scale, unit: Display scale of uncertainties; ``xunit`` of readings.
+        period: A periodic model's period: one turn is drawn, the reach wrapped onto it.
     """
     panels = 1 if lower_name is None else 2
     if fig is None:
-        fig = Figure(figsize=(7.5, 3.0 * panels), layout="constrained")
+        fig = Figure(figsize=(7.5, 3.2 * panels), layout="constrained")
     axes = np.atleast_1d(fig.subplots(panels, 1))
     ax = axes[0]
-    ends = [*testbed.x, *np.ravel(reach), *plan.positions]
-    if lower_name is None:
-        ends += [*plan.where]
-    lo, hi = float(np.min(ends)), float(np.max(ends))
-    pad = 0.02 * (hi - lo or 1.0)
+    if period is not None:
+        reach = _wrapped(reach, period)
+        lo, hi, pad = 0.0, float(period), 0.0
+    else:
+        ends = [*testbed.x, *np.ravel(reach), *plan.positions]
+        if lower_name is None:
+            ends += [*plan.where]
+        lo, hi = float(np.min(ends)), float(np.max(ends))
+        pad = 0.02 * (hi - lo or 1.0)
     grid = np.linspace(lo - pad, hi + pad, 600)
     now = testbed.predict(grid, return_std=True)[1]
     after = np.sqrt(
@@ -222,7 +228,8 @@ def plot_plan(
         f"{plan.positions.size} proposed reference measurements (stage 0), {numbered} in order",
         fontsize=9,
     )
-    ax.legend(fontsize=7, loc="lower center", ncol=3, framealpha=0.9)
+    ax.set_xlim(lo - pad, hi + pad)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.22), ncol=5, frameon=False)
     if lower_name is not None:
         bx = axes[1]
         bx.plot(plan.where, plan.u_before * scale, color="C0", lw=1.5, label=f"{lower_name} u now")
@@ -248,3 +255,16 @@ def _labels(positions: np.ndarray, near: float) -> list[tuple[float, str]]:
         else:
             groups.append([i])
     return [(float(np.mean(positions[g])), ",".join(str(i + 1) for i in sorted(g))) for g in groups]
+
+
+def _wrapped(reach: list[tuple[float, float]], period: float) -> list[tuple[float, float]]:
+    """Intervals on one turn ``[0, period]``: each shifted onto it and split at the seam
+    (a whole turn or more is the whole turn)."""
+    out = []
+    for a, b in reach:
+        if b - a >= period:
+            return [(0.0, period)]
+        a0 = a % period
+        b0 = a0 + (b - a)
+        out += [(a0, b0)] if b0 <= period else [(a0, period), (0.0, b0 - period)]
+    return out

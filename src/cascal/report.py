@@ -21,9 +21,9 @@ from .gp import Z95
 from .io.modelfile import CalibrationModel
 from .plots import plot_plan
 from .reportdata import CurveView, StageView, correction_curve, stage_views
-from .workflow import plan_measurements
+from .workflow import MeasurementPlan, plan_measurements
 
-__all__ = ["build_report", "correction_figure", "display_scale", "stage_figure"]
+__all__ = ["build_report", "correction_figure", "display_scale", "plan_figure", "stage_figure"]
 
 _SI = (("m", 1.0), ("mm", 1e3), ("µm", 1e6), ("nm", 1e9))
 _GAP_STYLE = dict(color="0.55", alpha=0.25, lw=0, hatch="//")
@@ -237,6 +237,10 @@ def build_report(
     )
 
 
+#: Reference measurements the report proposes.
+_PLAN_MEASUREMENTS = 5
+
+
 def _plan_section(model: CalibrationModel) -> list[str]:
     """Where the next reference measurements help most (``cascal plan``'s defaults)."""
     e, unit = html.escape, model.unit
@@ -262,21 +266,23 @@ def _plan_section(model: CalibrationModel) -> list[str]:
     out.append(
         _table(["order", f"test-bed reading [{unit}]", "RMS u after", "largest u after"], rows)
     )
-    scale, shown = display_scale(unit, float(plan.u_max[0]))
-    fig = plot_plan(
-        plan,
+    return [*out, _img(plan_figure(model, mp), "proposed reference measurements")]
+
+
+def plan_figure(model: CalibrationModel, mp: MeasurementPlan) -> Figure:
+    """The figure of a plan of ``model``'s reference measurements, in readable units."""
+    scale, shown = display_scale(model.unit, float(mp.plan.u_max[0]))
+    return plot_plan(
+        mp.plan,
         model.fitted.models[0],  # type: ignore[arg-type]
         list(mp.reach),
         lower_name=mp.lower_name,
         scale=scale,
         unit=shown,
-        xunit=unit,
+        xunit=model.unit,
+        period=model.period,
     )
-    return [*out, _img(fig, "proposed reference measurements")]
 
-
-#: Reference measurements the report proposes.
-_PLAN_MEASUREMENTS = 5
 
 _CSS = (
     "body{font-family:sans-serif;max-width:60em;margin:2em auto;color:#222}"

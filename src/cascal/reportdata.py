@@ -15,6 +15,7 @@ import numpy as np
 
 from .gp import Z95, FittedGP
 from .io.modelfile import CalibrationModel
+from .planning import GAP_FACTOR, find_gaps
 from .workflow import correct
 
 __all__ = [
@@ -27,8 +28,6 @@ __all__ = [
     "stage_views",
 ]
 
-#: A spacing this many times the median spacing of stage 0's readings counts as a gap.
-GAP_FACTOR = 3.0
 _GRID = 600
 
 
@@ -88,22 +87,6 @@ class CurveView:
     u: np.ndarray | None
     gaps: list[tuple[float, float]]
     calibrated_range: tuple[float, float]
-
-
-def find_gaps(
-    x: np.ndarray, *, factor: float = GAP_FACTOR, period: float | None = None
-) -> list[tuple[float, float]]:
-    """Stretches between neighbouring readings ``x`` (n,) wider than ``factor`` times the
-    median spacing; with ``period``, also the stretch across the seam (ending above it)."""
-    xs = np.unique(np.asarray(x, dtype=float))
-    if xs.size < 3:
-        return []
-    d = np.diff(xs)
-    limit = factor * float(np.median(d))
-    gaps = [(float(xs[i]), float(xs[i + 1])) for i in np.flatnonzero(d > limit)]
-    if period is not None and xs[0] + period - xs[-1] > limit:
-        gaps.append((float(xs[-1]), float(xs[0] + period)))
-    return gaps
 
 
 def _carry(

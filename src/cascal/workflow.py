@@ -24,13 +24,14 @@ from .errors import CascalError, InputError
 from .gp import FittedGP
 from .io.data import StageData, read_stage
 from .io.modelfile import CalibrationModel, load_model, save_model
-from .planning import LowerStage, Plan, plan_reference
+from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
 from .tabulate import predict_many
 
 __all__ = [
     "COVERAGE_FACTOR",
     "Correction",
     "DeviceResult",
+    "MeasurementPlan",
     "compensation",
     "correct",
     "fit_devices",
@@ -42,13 +43,8 @@ __all__ = [
 #: Coverage factor of the expanded uncertainty U = k u (about 95 % for a normal law, GUM).
 COVERAGE_FACTOR = 2.0
 _SUMMARY_GRID = 1001
-#: Planning: candidate test-bed readings over the reachable intervals, and readings at which
-#: a target's uncertainty is counted.
-_PLAN_CANDIDATES = 1001
+#: Planning: readings at which a target's uncertainty is counted.
 _PLAN_TARGET = 201
-#: Planning: stretches without reference points narrower than this fraction of the span
-#: are not gaps (the reference passed them).
-_PLAN_GAP = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -267,7 +263,7 @@ def plan_measurements(
         k: Measurements to propose.
         reach: Intervals ``(lo, hi)`` of test-bed readings the reference can reach (``lo ==
             hi`` for a single reading); default: the stretches stage 0's readings cover,
-            their gaps left out (:func:`_covered`).
+            their gaps left out (:func:`~cascal.planning.covered`).
         where: Test-bed readings ``(lo, hi)`` to lower the uncertainty over (one-stage
             models only).
         noise_std: Standard deviation of one new reference measurement, in the model's
@@ -285,16 +281,16 @@ def plan_measurements(
     span = (0.0, float(period)) if period is not None else (float(x0.min()), float(x0.max()))
     if reach is not None and len(reach) == 0:
         raise InputError("reach: expected at least one interval (lo, hi); None for the default")
-    intervals = tuple(_interval(r, "reach") for r in (reach or _covered(x0, period)))
+    intervals = tuple(check_interval(r, "reach") for r in (reach or covered(x0, period)))
     if noise_std is not None and not (0 <= noise_std < 1e150):
         raise InputError(f"noise std: expected a number >= 0 of {model.unit}, got {noise_std!r}")
     s2 = None if noise_std is None else float(noise_std) ** 2
-    candidates = _candidates(intervals)
+    candidates = candidate_readings(intervals)
     if period is not None:  # readings of any turn: one turn's
         candidates = np.unique(np.mod(candidates, period))
     unit = model.unit
     if len(model.data) == 1:
-        lo, hi = span if where is None else _interval(where, "where")
+        lo, hi = span if where is None else check_interval(where, "where")
         grid = np.linspace(lo, hi, _PLAN_TARGET) if hi > lo else np.array([lo])
         plan = plan_reference(
             testbed, candidates, k, where=grid, noise_variance=s2, progress=progress
@@ -320,49 +316,6 @@ def plan_measurements(
     plan = plan_reference(testbed, candidates, k, where=upper, noise_variance=s2, progress=progress)
     what = f"stage 0's uncertainty at the test-bed readings of stage 1 ({name})"
     return MeasurementPlan(plan, intervals, candidates.size, what, None)
-
-
-def _covered(x: np.ndarray, period: float | None) -> list[tuple[float, float]]:
-    """Stretches of readings ``x`` (n,) without their gaps: where the reference has been.
-    A gap is wider than :data:`~cascal.reportdata.GAP_FACTOR` median spacings and a tenth
-    of the span (one turn, for a ``period``); without a gap across the seam of a turn, the
-    last stretch runs on across it."""
-    from .reportdata import find_gaps  # (it imports this module)
-
-    xs = np.unique(x)
-    span = float(xs[-1] - xs[0]) if period is None else float(period)
-    gaps = [(a, b) for a, b in find_gaps(xs, period=period) if b - a > _PLAN_GAP * span]
-    out, start, end = [], float(xs[0]), float(xs[-1])
-    for a, b in gaps:
-        if a == end:  # the seam's
-            break
-        out.append((start, a))
-        start = b
-    else:
-        if period is not None:
-            end = float(xs[0]) + period
-    return [*out, (start, end)]
-
-
-def _interval(pair: object, name: str) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in pair)  # type: ignore[union-attr]
-    except (TypeError, ValueError):
-        raise InputError(f"{name}: expected an interval (lo, hi), got {pair!r}") from None
-    if not (np.isfinite(lo) and np.isfinite(hi) and lo <= hi and np.isfinite(hi - lo)):
-        raise InputError(f"{name}: expected finite lo <= hi, got {lo!r}, {hi!r}")
-    return lo, hi
-
-
-def _candidates(intervals: Sequence[tuple[float, float]]) -> np.ndarray:
-    """About :data:`_PLAN_CANDIDATES` readings over the intervals, in proportion to their
-    lengths (both ends of each; a point interval gives its one reading)."""
-    total = sum(hi - lo for lo, hi in intervals)
-    parts = []
-    for lo, hi in intervals:
-        n = 1 if hi == lo else max(2, round(_PLAN_CANDIDATES * ((hi - lo) / total)))
-        parts.append(np.linspace(lo, hi, n))
-    return np.unique(np.concatenate(parts))
 
 
 @dataclass(frozen=True, slots=True)

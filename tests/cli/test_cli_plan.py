@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -9,11 +10,12 @@ import numpy as np
 import pytest
 from cli_helpers import run_cascal
 
-from cascal.cli_plan import join_negative
+from cascal.cli import check_output, join_negative, same_file
 from cascal.demo import rotary_demo
 from cascal.io.modelfile import load_model, save_model
-from cascal.reportdata import find_gaps
-from cascal.workflow import _covered, fit_model, plan_measurements
+from cascal.planning import covered, find_gaps
+from cascal.plots import _wrapped
+from cascal.workflow import fit_model, plan_measurements
 from utils import assert_allclose, demo_stages
 
 
@@ -60,19 +62,22 @@ def test_negative_readings_and_covered_stretches(linear_model, tmp_path):
     assert join_negative(["plan", "m", "--reach", "-1:2", "--where", "-3:-1", "-n", "2"]) == [
         "plan", "m", "--reach=-1:2", "--where=-3:-1", "-n", "2",
     ]  # fmt: skip
+    assert join_negative(["--reach", "-4e-2", "--where", "-x", "--", "--reach", "-1:2"]) == [
+        "--reach=-4e-2", "--where", "-x", "--", "--reach", "-1:2",
+    ]  # fmt: skip
     out = tmp_path / "p.csv"
     res = run_cascal("plan", linear_model, "-n", "2", "--reach", "-0.04:0.3", "-o", out)
     assert res.returncode == 0, res.stderr
     positions = np.loadtxt(out, delimiter=",", skiprows=1)[:, 1]
     assert np.all((positions >= -0.04) & (positions <= 0.3))
     paper = np.delete(np.linspace(0.0, 1.0, 100)[10:90], np.s_[32:48])
-    assert _covered(paper, None) == [(paper[0], paper[31]), (paper[32], paper[-1])]
+    assert covered(paper, None) == [(paper[0], paper[31]), (paper[32], paper[-1])]
     clustered = np.concatenate([np.linspace(0.0, 0.1, 21), np.linspace(0.19, 1.0, 10)])
-    assert _covered(clustered, None) == [(0.0, 1.0)]  # sparse, not a gap
+    assert covered(clustered, None) == [(0.0, 1.0)]  # sparse, not a gap
     full = np.arange(0.0, 360.0, 5.0)
-    assert _covered(full, 360.0) == [(0.0, 360.0)]
+    assert covered(full, 360.0) == [(0.0, 360.0)]
     seam = np.arange(25.0, 340.0, 5.0)
-    assert _covered(seam, 360.0) == [(25.0, 335.0)]
+    assert covered(seam, 360.0) == [(25.0, 335.0)]
 
 
 def test_periodic_proposals_lie_on_one_turn(tmp_path):
@@ -87,10 +92,28 @@ def test_periodic_proposals_lie_on_one_turn(tmp_path):
     p = mp.plan.positions
     assert np.all((p >= 0.0) & (p < 360.0) & ((p >= 340.0) | (p <= 20.0)))
     assert mp.plan.u_rms[-1] < 0.9 * mp.plan.u_rms[0]  # the seam is where u is largest
+    assert _wrapped([(340.0, 380.0)], 360.0) == [(340.0, 360.0), (0.0, 20.0)]
+    assert _wrapped([(-20.0, 10.0), (400.0, 410.0)], 360.0) == [
+        (340.0, 360.0), (0.0, 10.0), (40.0, 50.0),
+    ]  # fmt: skip
+    assert _wrapped([(0.0, 400.0), (5.0, 6.0)], 360.0) == [(0.0, 360.0)]
 
 
 def test_outputs_never_overwrite_inputs(linear_files, linear_model, tmp_path):
+    """Not the same regular file (``..`` and links resolved); devices are never the same."""
     files, readings = linear_files
+    (tmp_path / "sub").mkdir()
+    assert same_file(tmp_path / "sub" / ".." / "p.png", tmp_path / "p.png")
+    (tmp_path / "link.json").symlink_to(linear_model)
+    assert same_file(tmp_path / "link.json", linear_model)
+    assert not same_file(os.devnull, os.devnull)
+    check_output(os.devnull, inputs=[os.devnull])  # e.g. -o /dev/stdout with /dev/stdin
+    res = run_cascal("plan", linear_model, "-o", tmp_path / "sub" / ".." / "p.x",
+                     "--plot", tmp_path / "p.x.png")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    res = run_cascal("plan", linear_model, "-o", tmp_path / "sub" / ".." / "q.png",
+                     "--plot", tmp_path / "q.png")  # fmt: skip
+    assert res.returncode == 2 and "same file as -o" in res.stderr
     for args in (
         ("correct", linear_model, readings, "-o", readings),
         ("export", linear_model, "-o", linear_model),
@@ -132,14 +155,17 @@ def bad_runs(linear_model, tmp_path_factory):
     (tmp / "folder.csv").mkdir()
     cases = {
         "reach_words": ([linear_model, "--reach", "a:b"], ["--reach", "LO:HI"]),
-        "reach_reversed": ([linear_model, "--reach", "0.5:0.1"], ["LO <= HI"]),
+        "reach_reversed": ([linear_model, "--reach", "0.5:0.1"], ["--reach '0.5:0.1'", "lo <= hi"]),
         "reach_nan": ([linear_model, "--reach", "nan"], ["finite"]),
         "reach_three": ([linear_model, "--reach", "1:2:3"], ["LO:HI"]),
         "where_two_stages": ([linear_model, "--where", "0:1"], ["one-stage model"]),
-        "noise_negative": ([linear_model, "--noise-std", "-1"], ["noise std", ">= 0"]),
+        "noise_negative": ([linear_model, "--noise-std", "-1"], ["--noise-std", ">= 0"]),
         "too_many": ([linear_model, "-n", "1001"], ["-n", "at most 1000"]),
-        "noise_huge": ([linear_model, "--noise-std", "1e200"], ["noise std"]),
-        "reach_overflow": ([linear_model, "--reach=-1e308:1e308"], ["reach", "finite"]),
+        "noise_huge": ([linear_model, "--noise-std", "1e200"], ["--noise-std", "below 1e150"]),
+        "reach_overflow": (
+            [linear_model, "--reach=-1e308:1e308"],
+            ["--reach '-1e308:1e308'", "finite"],
+        ),
         "plot_is_output": (
             [linear_model, "--plot", tmp / "same.png", "-o", tmp / "same.png"],
             ["same file as -o"],
