@@ -155,7 +155,7 @@ def plan_reference(
     var_p = testbed.kernel.diag(points) - np.einsum("ij,ij->j", Vp, Vp)
     prior = float(np.max(testbed.kernel.diag(np.concatenate([cand, points]))))
     s2 = max(s2, NOISE_FLOOR * prior)  # also keeps every candidate's variance plus noise up
-    target = _TestbedTarget(var_p, cross) if lower is None else _LowerTarget(lower, cross)
+    target = _TestbedTarget(var_p) if lower is None else _LowerTarget(lower, cross)
     var = [target.variance()]
     chosen = []
     for _ in range(int(k)):
@@ -170,12 +170,10 @@ def plan_reference(
         if progress is not None:
             progress(len(chosen), int(k))
     positions = np.asarray(chosen)
-    where_out = points if lower is None else as_positions(lower.where, "where")
     if lower is None:
-        before = var[0]
-        after = variance_after(testbed, points, positions, s2)
+        where_out, after = points, variance_after(testbed, points, positions, s2)
     else:
-        before = lower.gp.predict(where_out, return_std=True)[1] ** 2
+        where_out = as_positions(lower.where, "where")
         after = lower_variance_after(lower, testbed, positions, s2)
     v = np.clip(np.asarray(var), 0.0, None)
     return Plan(
@@ -184,7 +182,7 @@ def plan_reference(
         np.sqrt(v.max(axis=1)),
         s2,
         where_out,
-        np.sqrt(np.clip(before, 0.0, None)),
+        np.sqrt(v[0]),
         np.sqrt(np.clip(after, 0.0, None)),
     )
 
@@ -204,7 +202,7 @@ def _noise(testbed: FittedGP, noise_variance: float | None) -> float:
 class _TestbedTarget:
     """Stage 0's own variance at the target's points ``var`` (q,)."""
 
-    def __init__(self, var: np.ndarray, S: np.ndarray) -> None:
+    def __init__(self, var: np.ndarray) -> None:
         self.var = var
 
     def gains(self, S: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -253,14 +251,13 @@ class _LowerTarget:
         return self.var
 
 
-def _factor(A: np.ndarray) -> np.ndarray:
-    """Cholesky factor of the lower stage's target covariance once stage 0's covariance
-    has been lowered; refused (no jitter) when that leaves it singular to round-off."""
+def _factor(A: np.ndarray, what: str) -> np.ndarray:
+    """Cholesky factor of a covariance ``what`` the planned measurements change; refused
+    (no jitter: it would change the plan's figures unseen) when singular to round-off."""
     L, info = lapack.dpotrf(A, lower=1, clean=1)
     if info != 0 or not np.all(np.isfinite(np.diagonal(L))):
         raise NumericalError(
-            "planning: the measurements leave the lower stage's target covariance singular "
-            "to round-off (its own noise is negligible beside stage 0's); plan fewer "
+            f"planning: the measurements leave {what} singular to round-off; plan fewer "
             "measurements or give a larger noise of a new one"
         )
     return L
@@ -272,9 +269,9 @@ def variance_after(
     """Stage 0's posterior variance at test-bed readings ``x`` (m,) once reference
     measurements at ``positions`` (k,) with variance ``noise_variance`` are added, from a
     new Cholesky factor of the enlarged target covariance: shape (m,)."""
-    xs = as_positions(x, "x")
-    L = _enlarged_factor(testbed, as_positions(positions, "positions"), noise_variance)
-    xa = np.concatenate([testbed.x, as_positions(positions, "positions")])
+    xs, pos = as_positions(x, "x"), as_positions(positions, "positions")
+    L = _enlarged_factor(testbed, pos, noise_variance)
+    xa = np.concatenate([testbed.x, pos])
     V = solve_triangular(L, testbed.kernel(xa, xs), lower=True, check_finite=False)
     return testbed.kernel.diag(xs) - np.einsum("ij,ij->j", V, V)
 
@@ -285,8 +282,7 @@ def _enlarged_factor(testbed: FittedGP, positions: np.ndarray, s2: float) -> np.
     K = testbed.kernel(xa)
     K[:n, :n] = testbed.L @ testbed.L.T  # the fitted target covariance, noise included
     K.flat[n * (xa.size + 1) :: xa.size + 1] += s2
-    L, _ = linalg.cholesky(K, what="enlarged target covariance")
-    return L
+    return _factor(K, "stage 0's enlarged target covariance")
 
 
 def lower_variance_after(
@@ -311,12 +307,13 @@ def lower_variance_after(
     Cuk = testbed.kernel(up, pos) - Vu.T @ Vk
     Ckk = testbed.kernel(pos) - Vk.T @ Vk
     Ckk.flat[:: pos.size + 1] += noise_variance
-    R = _factor(Ckk)
+    R = _factor(Ckk, "stage 0's covariance at the new points")
     Z = solve_triangular(R, Cuk.T, lower=True, check_finite=False).T  # (n, k)
     Q = linalg.cho_solve(gp.L, Z)
     M = -(Z.T @ Q)
     M.flat[:: pos.size + 1] += 1.0
-    T = solve_triangular(_factor(0.5 * (M + M.T)), (Kg @ Q).T, lower=True, check_finite=False)
+    Lm = _factor(0.5 * (M + M.T), "the lower stage's target covariance")
+    T = solve_triangular(Lm, (Kg @ Q).T, lower=True, check_finite=False)
     return var - np.einsum("ij,ij->j", T, T)
 
 

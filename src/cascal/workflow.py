@@ -283,7 +283,9 @@ def plan_measurements(
         raise InputError("reach: expected at least one interval (lo, hi); None for the default")
     intervals = tuple(check_interval(r, "reach") for r in (reach or covered(x0, period)))
     if noise_std is not None and not (0 <= noise_std < 1e150):
-        raise InputError(f"noise std: expected a number >= 0 of {model.unit}, got {noise_std!r}")
+        raise InputError(
+            f"noise_std: expected a number >= 0 below 1e150 of {model.unit}, got {noise_std!r}"
+        )
     s2 = None if noise_std is None else float(noise_std) ** 2
     candidates = candidate_readings(intervals)
     if period is not None:  # readings of any turn: one turn's
@@ -291,7 +293,8 @@ def plan_measurements(
     unit = model.unit
     if len(model.data) == 1:
         lo, hi = span if where is None else check_interval(where, "where")
-        grid = np.linspace(lo, hi, _PLAN_TARGET) if hi > lo else np.array([lo])
+        turn = period is not None and where is None  # one turn: 0 and the period are one
+        grid = np.linspace(lo, hi, _PLAN_TARGET, endpoint=not turn) if hi > lo else np.array([lo])
         plan = plan_reference(
             testbed, candidates, k, where=grid, noise_variance=s2, progress=progress
         )
