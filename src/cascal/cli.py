@@ -79,6 +79,21 @@ def check_output(
         raise InputError(f"{option} {p}: no permission to write in {parent}")
 
 
+def check_outputs(output: str | None, plot: str | None, inputs: Sequence[str | Path]) -> None:
+    """Refuse, before any work, a table ``-o`` and a figure ``--plot`` that cannot be
+    written (:func:`check_output`), a figure of another format than PNG, SVG or PDF, or
+    both naming one file."""
+    if output is not None:
+        check_output(output, inputs=inputs)
+    if plot is None:
+        return
+    check_output(plot, option="--plot", inputs=inputs)
+    if Path(plot).suffix.lower() not in (".png", ".svg", ".pdf"):
+        raise InputError(f"--plot {plot}: expected a .png, .svg or .pdf file name")
+    if output is not None and same_file(plot, output):
+        raise InputError(f"--plot {plot}: the same file as -o; give two names")
+
+
 def same_file(a: str | Path, b: str | Path) -> bool:
     """True when paths ``a`` and ``b`` name the same regular file, or the same location
     (links and ``..`` resolved) when one does not exist yet. Devices such as
@@ -500,9 +515,11 @@ def _parser() -> argparse.ArgumentParser:
     from .cli_export import add_export_parser
     from .cli_plan import add_plan_parser
     from .cli_study import add_study_parser
+    from .cli_verify import add_verify_parser
 
     add_export_parser(sub)
     add_plan_parser(sub)
+    add_verify_parser(sub)
     add_study_parser(sub)
     return p
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 __all__ = ["INTERVAL_OPTIONS", "add_plan_parser"]
 
@@ -18,7 +17,7 @@ INTERVAL_OPTIONS = ("--reach", "--where")
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import check_output, same_file, warn
+    from .cli import check_outputs, warn
     from .cli_study import Progress
     from .errors import InputError
     from .io.csvout import auto_decimals, write_columns
@@ -26,14 +25,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     from .planning import MAX_MEASUREMENTS
     from .workflow import plan_measurements
 
-    if args.output is not None:
-        check_output(args.output, inputs=(args.model,))
-    if args.plot is not None:
-        check_output(args.plot, option="--plot", inputs=(args.model,))
-        if Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
-            raise InputError(f"--plot {args.plot}: expected a .png, .svg or .pdf file name")
-        if args.output is not None and same_file(args.plot, args.output):
-            raise InputError(f"--plot {args.plot}: the same file as -o; give two names")
+    check_outputs(args.output, args.plot, inputs=(args.model,))
     if args.n > MAX_MEASUREMENTS:
         raise InputError(f"-n: expected at most {MAX_MEASUREMENTS} measurements, got {args.n}")
     if args.noise_std is not None and not (0 <= args.noise_std < 1e150):

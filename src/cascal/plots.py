@@ -13,8 +13,9 @@ from matplotlib.figure import Figure
 from .cascade import FittedCascade
 from .gp import Z95, FittedGP
 from .planning import Plan, variance_after
+from .verification import Verification
 
-__all__ = ["plot_cascade", "plot_cost_distribution", "plot_plan", "plot_stage"]
+__all__ = ["plot_cascade", "plot_cost_distribution", "plot_plan", "plot_stage", "plot_verification"]
 
 #: A plan's figure numbers this many of its first proposals.
 _NUMBERED = 12
@@ -241,6 +242,54 @@ def plot_plan(
         bx.set_ylabel(f"standard uncertainty [{unit}]")
         bx.set_title(f"the target: {lower_name}'s uncertainty over its readings", fontsize=9)
         bx.legend(fontsize=7, loc="best")
+    return fig
+
+
+def plot_verification(
+    v: Verification,
+    *,
+    fig: Figure | None = None,
+    scale: float = 1.0,
+    unit: str = "m",
+    xunit: str = "m",
+) -> Figure:
+    """Check points' errors after correction against the reading, with the expanded
+    uncertainty ``k u`` of each (a band), points outside it marked, and the MPE if given.
+    Points outside the calibrated range are left out.
+
+    Args:
+        v: The verification of :func:`cascal.verification.verify`.
+        scale, unit: Display scale of errors; ``xunit`` of readings.
+    """
+    if fig is None:
+        fig = Figure(figsize=(7.5, 3.6), layout="constrained")
+    ax = fig.subplots()
+    m = v.inside
+    order = np.argsort(v.reading[m], kind="stable")
+    r, e = v.reading[m][order], v.error[m][order] * scale
+    if v.has_u:
+        band = v.k * v.u[m][order] * scale
+        ax.fill_between(r, -band, band, color="C0", alpha=0.2, lw=0, label=f"±U (k = {v.k:g})")
+        out = (v.en[m] > 1.0)[order]
+    else:
+        out = np.zeros(r.shape, bool)
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.plot(r[~out], e[~out], ".", color="C0", ms=3, label="error after correction")
+    if np.any(out):
+        ax.plot(r[out], e[out], "x", color="C3", ms=5, label="outside ±U")
+    if v.mpe is not None:
+        for s in (-1.0, 1.0):
+            ax.axhline(
+                s * v.mpe * scale, color="C1", ls="--", lw=1, label="±MPE" if s > 0 else None
+            )
+    ax.set_xlabel(f"device reading [{xunit}]")
+    ax.set_ylabel(f"corrected - reference [{unit}]")
+    summary = v.summary()
+    title = f"{summary['points']} check points: RMS error {summary['rms_after'] * scale:.3g} {unit}"
+    if summary["within_U"] is not None:
+        title += f", {100 * summary['within_U'] / summary['points']:.1f} % within ±U"
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=4, frameon=False)
     return fig
 
 

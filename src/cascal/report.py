@@ -19,11 +19,19 @@ from ._version import __version__
 from .errors import CascalError
 from .gp import Z95
 from .io.modelfile import CalibrationModel
-from .plots import plot_plan
+from .plots import plot_plan, plot_verification
 from .reportdata import CurveView, StageView, correction_curve, stage_views
+from .verification import Verification
 from .workflow import MeasurementPlan, plan_measurements
 
-__all__ = ["build_report", "correction_figure", "display_scale", "plan_figure", "stage_figure"]
+__all__ = [
+    "build_report",
+    "correction_figure",
+    "display_scale",
+    "plan_figure",
+    "stage_figure",
+    "verification_figure",
+]
 
 _SI = (("m", 1.0), ("mm", 1e3), ("µm", 1e6), ("nm", 1e9))
 _GAP_STYLE = dict(color="0.55", alpha=0.25, lw=0, hatch="//")
@@ -282,6 +290,13 @@ def plan_figure(model: CalibrationModel, mp: MeasurementPlan) -> Figure:
         xunit=model.unit,
         period=model.period,
     )
+
+
+def verification_figure(model: CalibrationModel, v: Verification) -> Figure:
+    """The figure of a verification of ``model`` at check points, in readable units."""
+    e = v.error[v.inside]
+    scale, shown = display_scale(model.unit, float(np.max(np.abs(e))) if e.size else 0.0)
+    return plot_verification(v, scale=scale, unit=shown, xunit=model.unit)
 
 
 _CSS = (

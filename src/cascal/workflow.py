@@ -26,6 +26,7 @@ from .io.data import StageData, read_stage
 from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
 from .tabulate import predict_many
+from .verification import COVERAGE_FACTOR, Verification, verify
 
 __all__ = [
     "COVERAGE_FACTOR",
@@ -37,11 +38,11 @@ __all__ = [
     "fit_devices",
     "fit_model",
     "plan_measurements",
+    "reading_u",
     "summarize_device",
+    "verify_model",
 ]
 
-#: Coverage factor of the expanded uncertainty U = k u (about 95 % for a normal law, GUM).
-COVERAGE_FACTOR = 2.0
 _SUMMARY_GRID = 1001
 #: Planning: readings at which a target's uncertainty is counted.
 _PLAN_TARGET = 201
@@ -172,6 +173,42 @@ def correct(model: CalibrationModel, readings: object) -> Correction:
     else:
         corrected, u = device(r), np.full(r.shape, np.nan)
     return Correction(r, corrected, u, out)
+
+
+def reading_u(model: CalibrationModel) -> float:
+    """Standard uncertainty of one device reading by default: the square root of the white
+    noise variance the last stage learned (it holds the device's repeatability and the test
+    bed's, so it errs on the large side); 0.0 for a lookup-table model."""
+    device = model.fitted.device
+    return float(np.sqrt(device.noise_variance)) if isinstance(device, FittedGP) else 0.0
+
+
+def verify_model(
+    model: CalibrationModel,
+    reading: object,
+    reference: object,
+    *,
+    u_reading: float | None = None,
+    u_reference: float = 0.0,
+    mpe: float | None = None,
+) -> Verification:
+    """Verify ``model`` at independent check points: device readings (m,) and the
+    reference's values there (m,). Points outside the calibrated range are corrected but
+    left out of the statistics. ``u_reading`` defaults to :func:`reading_u`; see
+    :func:`cascal.verification.verify` for the rest.
+    """
+    c = correct(model, reading)
+    return verify(
+        c.reading,
+        np.asarray(reference, dtype=float),
+        c.corrected,
+        c.u,
+        inside=~c.out_of_range,
+        u_reading=reading_u(model) if u_reading is None else u_reading,
+        u_reference=u_reference,
+        period=model.period if model.periodic else None,
+        mpe=mpe,
+    )
 
 
 def compensation(

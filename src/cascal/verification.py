@@ -1,0 +1,177 @@
+"""Verification of a calibration against independent check points.
+
+After a calibration, the device is read at positions the reference measures too, points
+the fit never saw. Each check point's error is ``corrected - reference``. Its standard
+uncertainty combines, as independent terms, the calibration's own ``u`` at the reading,
+the repeatability of one device reading and the reference's uncertainty; the normalised
+error ``En = |error| / (k u)`` is at most 1 at about 95 % of the points where the model's
+uncertainty is right (fewer can occur by chance: neighbouring points share the calibration
+error). Against a maximum permissible error (MPE), a point conforms when
+``|error| + k u_reference <= MPE``: the error, enlarged by the expanded uncertainty of the
+check itself, stays within the limit (the rule of ISO 14253-1 for proving conformance).
+Pure numerics: no files, no printing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["COVERAGE_FACTOR", "Verification", "expected_within", "verify"]
+
+#: Coverage factor of the expanded uncertainty U = k u (about 95 % for a normal law, GUM).
+COVERAGE_FACTOR = 2.0
+
+
+def expected_within(k: float = COVERAGE_FACTOR) -> float:
+    """Probability that a normal error lies within k standard deviations (0.9545 for 2)."""
+    return math.erf(k / math.sqrt(2.0))
+
+
+@dataclass(frozen=True, slots=True)
+class Verification:
+    """Check points against the corrected readings; statistics count inside points only.
+
+    Attributes:
+        reading: Device readings of the check points, shape (m,).
+        reference: Reference values at them, shape (m,), same unit.
+        corrected: Corrected readings, shape (m,).
+        error: ``corrected - reference``, shape (m,) (for a rotary model the shortest way
+            round, within half a period).
+        error_before: ``reading - reference`` likewise: the error without correction.
+        u_calibration: Standard uncertainty of the correction at each reading, shape (m,);
+            NaN for a lookup-table model, which has none.
+        u_reading: Standard uncertainty of one device reading (its repeatability).
+        u_reference: Standard uncertainty of one reference value.
+        inside: True where the reading lies in the calibrated range, shape (m,).
+        mpe: Maximum permissible error, or None.
+        k: Coverage factor of the expanded uncertainties.
+    """
+
+    reading: np.ndarray
+    reference: np.ndarray
+    corrected: np.ndarray
+    error: np.ndarray
+    error_before: np.ndarray
+    u_calibration: np.ndarray
+    u_reading: float
+    u_reference: float
+    inside: np.ndarray
+    mpe: float | None = None
+    k: float = COVERAGE_FACTOR
+
+    @property
+    def u(self) -> np.ndarray:
+        """Standard uncertainty of each error: the three terms combined, shape (m,)."""
+        return np.sqrt(self.u_calibration**2 + self.u_reading**2 + self.u_reference**2)
+
+    @property
+    def en(self) -> np.ndarray:
+        """Normalised error ``|error| / (k u)``, shape (m,); NaN without a calibration u."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.abs(self.error) / (self.k * self.u)
+
+    @property
+    def conforms(self) -> np.ndarray | None:
+        """``|error| + k u_reference <= mpe`` at each point, shape (m,); None without MPE."""
+        if self.mpe is None:
+            return None
+        return np.abs(self.error) + self.k * self.u_reference <= self.mpe
+
+    @property
+    def has_u(self) -> bool:
+        """Whether the model gives the calibration's uncertainty (not a lookup table)."""
+        return not np.all(np.isnan(self.u_calibration))
+
+    def summary(self) -> dict[str, float | int | None]:
+        """Statistics over the inside points: their count, RMS and largest error before and
+        after correction, how many have ``En <= 1``, the RMS of ``error / u`` and how many
+        conform to the MPE (None where they do not apply)."""
+        m = self.inside
+        e, before = self.error[m], self.error_before[m]
+        n = int(e.size)
+        out: dict[str, float | int | None] = {
+            "points": n,
+            "outside_range": int(self.inside.size - n),
+            "rms_before": _rms(before),
+            "rms_after": _rms(e),
+            "max_before": float(np.max(np.abs(before))) if n else math.nan,
+            "max_after": float(np.max(np.abs(e))) if n else math.nan,
+            "within_U": None,
+            "rms_normalised": None,
+            "conforming": None,
+        }
+        if self.has_u and n:
+            out["within_U"] = int(np.count_nonzero(self.en[m] <= 1.0))
+            out["rms_normalised"] = _rms(e / self.u[m])
+        conforms = self.conforms
+        if conforms is not None:
+            out["conforming"] = int(np.count_nonzero(conforms[m]))
+        return out
+
+
+def verify(
+    reading: np.ndarray,
+    reference: np.ndarray,
+    corrected: np.ndarray,
+    u_calibration: np.ndarray,
+    *,
+    inside: np.ndarray | None = None,
+    u_reading: float = 0.0,
+    u_reference: float = 0.0,
+    period: float | None = None,
+    mpe: float | None = None,
+    k: float = COVERAGE_FACTOR,
+) -> Verification:
+    """Compare corrected readings (m,) with reference values (m,) at check points.
+
+    Args:
+        reading, reference, corrected, u_calibration: Shape (m,) each, one unit.
+        inside: Points that count in the statistics, shape (m,); default all.
+        u_reading, u_reference: Standard uncertainties of one device reading and of one
+            reference value, >= 0.
+        period: For a rotary model, errors are taken the shortest way round.
+        mpe: Maximum permissible error (> 0), or None.
+        k: Coverage factor (> 0).
+    """
+    arrays = [np.asarray(a, dtype=float) for a in (reading, reference, corrected, u_calibration)]
+    m = arrays[0].shape
+    if any(a.ndim != 1 or a.shape != m for a in arrays):
+        raise ValueError("verify: expected four arrays of one shape (m,)")
+    inside = np.ones(m, bool) if inside is None else np.asarray(inside, bool)
+    if inside.shape != m:
+        raise ValueError(f"verify: inside has shape {inside.shape}, expected {m}")
+    for name, v in (("u_reading", u_reading), ("u_reference", u_reference)):
+        if not (0.0 <= v < math.inf):
+            raise ValueError(f"verify: {name} must be a finite number >= 0, got {v!r}")
+    if mpe is not None and not (0.0 < mpe < math.inf):
+        raise ValueError(f"verify: mpe must be a finite number > 0, got {mpe!r}")
+    if not (0.0 < k < math.inf):
+        raise ValueError(f"verify: k must be a finite number > 0, got {k!r}")
+    r, ref, c, u = arrays
+    return Verification(
+        r,
+        ref,
+        c,
+        _difference(c, ref, period),
+        _difference(r, ref, period),
+        u,
+        float(u_reading),
+        float(u_reference),
+        inside,
+        None if mpe is None else float(mpe),
+        float(k),
+    )
+
+
+def _difference(a: np.ndarray, b: np.ndarray, period: float | None) -> np.ndarray:
+    d = a - b
+    if period is not None:
+        d = d - period * np.round(d / period)
+    return d
+
+
+def _rms(v: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(v * v))) if v.size else math.nan
