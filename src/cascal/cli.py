@@ -254,7 +254,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    """Simulate a linear and a rotary cascade, then fit, correct, report, export and plan them."""
+    """Simulate a linear and a rotary cascade; fit, correct, report, export, plan, verify."""
     from .cli_demo import run_demo
 
     return run_demo(Path(args.out), seed=args.seed, main=main)
@@ -506,7 +506,8 @@ def _parser() -> argparse.ArgumentParser:
     rep.set_defaults(func=_cmd_report)
 
     demo = sub.add_parser(
-        "demo", help="simulate example files, then fit, correct, report, export and plan them"
+        "demo",
+        help="simulate example files, then fit, correct, report, export, plan and verify them",
     )
     demo.add_argument("--out", default="out", help="output folder (default out/)")
     demo.add_argument("--seed", type=seed, default=0, help="seed of the simulation (default 0)")

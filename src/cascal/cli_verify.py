@@ -62,7 +62,8 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     worst = int(np.flatnonzero(m)[np.argmax(np.abs(v.error[m]))])
     print(f"  error before correction: RMS {s['rms_before']:.4g} {unit}")
     print(
-        f"  error after correction:  RMS {s['rms_after']:.4g} {unit}, largest "
+        f"  error after correction:  RMS {s['rms_after']:.4g} {unit} "
+        f"({s['rms_before'] / s['rms_after']:.0f}x smaller), largest "
         f"{abs(v.error[worst]):.4g} {unit} (row {int(table.rows[worst])}, "
         f"reading {v.reading[worst]:.9g})"
     )
@@ -127,7 +128,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
             f"(first: row {first})."
         )
         return EXIT_FAILURE
-    print("Verification passed." if v.mpe is not None else "Done (no --mpe: no pass or fail).")
+    print("Verification passed." if v.mpe is not None else "No --mpe given: reported, not judged.")
     return 0
 
 

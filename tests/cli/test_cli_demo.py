@@ -27,7 +27,8 @@ def test_demo_writes_and_points_to_its_results(demo):
         folder = out / "demo" / case
         for name in ("reference_testbed.csv", "testbed_device.csv", "readings.csv",
                      "model.json", "corrected.csv", "report.html",
-                     f"{case}_compensation.h", "plan.csv", "plan.png"):  # fmt: skip
+                     f"{case}_compensation.h", "plan.csv", "plan.png", "verify.csv",
+                     "verify.png"):  # fmt: skip
             assert (folder / name).stat().st_size > 0, name
         assert str(folder / "report.html") in res.stdout
         assert f"$ cascal fit {folder}" in res.stdout

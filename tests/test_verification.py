@@ -1,0 +1,128 @@
+"""Verification at check points: errors, combined uncertainty, En, MPE conformance."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from cascal.demo import linear_demo, rotary_demo
+from cascal.verification import expected_within, verify
+from cascal.workflow import fit_model, reading_u, verify_model
+from utils import assert_allclose, demo_stages
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    u_read=st.floats(0.0, 2.0),
+    u_ref=st.floats(0.0, 2.0),
+    mpe=st.floats(0.1, 5.0),
+)
+def test_numbers_against_the_formulas_written_out(seed, u_read, u_ref, mpe):
+    rng = np.random.default_rng(seed)
+    m = 40
+    reading = np.sort(rng.uniform(0.0, 10.0, m))
+    reference = reading + rng.normal(0.0, 1.0, m)
+    corrected = reference + rng.normal(0.0, 1.0, m)
+    u_cal = rng.uniform(0.1, 2.0, m)
+    inside = rng.uniform(size=m) > 0.2
+    v = verify(reading, reference, corrected, u_cal, inside=inside, u_reading=u_read,
+               u_reference=u_ref, mpe=mpe)  # fmt: skip
+    for i in range(m):
+        err = corrected[i] - reference[i]
+        u = math.sqrt(u_cal[i] ** 2 + u_read**2 + u_ref**2)
+        assert v.error[i] == err
+        assert v.error_before[i] == reading[i] - reference[i]
+        assert math.isclose(v.u[i], u, rel_tol=1e-14)
+        assert math.isclose(v.en[i], abs(err) / (2.0 * u), rel_tol=1e-14)
+        assert v.conforms[i] == (abs(err) + 2.0 * u_ref <= mpe)
+    s = v.summary()
+    idx = [i for i in range(m) if inside[i]]
+    assert s["points"] == len(idx) and s["outside_range"] == m - len(idx)
+    errs = [corrected[i] - reference[i] for i in idx]
+    assert math.isclose(s["rms_after"], math.sqrt(sum(e * e for e in errs) / len(idx)))
+    assert s["max_after"] == max(abs(e) for e in errs)
+    assert s["within_U"] == sum(v.en[i] <= 1.0 for i in idx)
+    assert s["conforming"] == sum(bool(v.conforms[i]) for i in idx)
+    z = [errs[j] / v.u[i] for j, i in enumerate(idx)]
+    assert math.isclose(s["rms_normalised"], math.sqrt(sum(t * t for t in z) / len(z)))
+
+
+def test_coverage_of_independent_normal_errors():
+    """Errors drawn with the stated u lie within U = 2u at erf(sqrt 2) of the points."""
+    assert math.isclose(expected_within(2.0), 0.9544997361036416, rel_tol=1e-15)
+    assert math.isclose(expected_within(1.0), 0.6826894921370859, rel_tol=1e-15)
+    rng = np.random.default_rng(1)
+    m = 200_000
+    u_cal, u_read, u_ref = rng.uniform(0.5, 2.0, m), 0.7, 0.3
+    u = np.sqrt(u_cal**2 + u_read**2 + u_ref**2)
+    reference = rng.uniform(0.0, 1.0, m)
+    corrected = reference + rng.normal(0.0, 1.0, m) * u
+    s = verify(
+        reference, reference, corrected, u_cal, u_reading=u_read, u_reference=u_ref
+    ).summary()
+    assert abs(s["within_U"] / m - expected_within()) < 0.002  # binomial sd 4.7e-4
+    assert abs(s["rms_normalised"] - 1.0) < 0.005
+
+
+def test_rotary_errors_go_the_shortest_way_round():
+    c = np.array([359.99, 0.01, 180.0, 10.0])
+    ref = np.array([0.01, 359.99, 180.0 + 360.0, 370.0 + 0.5])
+    v = verify(c, ref, c, np.ones(4), period=360.0)
+    assert_allclose(v.error, [-0.02, 0.02, 0.0, -0.5], atol=1e-12, rtol=0)
+    assert np.all(np.abs(verify(c, ref, c, np.ones(4)).error[:2]) > 359)
+
+
+def test_lookup_table_without_uncertainty_and_bad_arguments():
+    x = np.linspace(0.0, 1.0, 5)
+    v = verify(x, x + 0.1, x, np.full(5, np.nan), mpe=0.3, u_reference=0.05)
+    s = v.summary()
+    assert not v.has_u and s["within_U"] is None and s["rms_normalised"] is None
+    assert s["conforming"] == 5 and np.all(np.isnan(v.en))
+    assert verify(x, x, x, np.ones(5)).conforms is None
+    with pytest.raises(ValueError, match="one shape"):
+        verify(x, x[:4], x, x)
+    with pytest.raises(ValueError, match="u_reading"):
+        verify(x, x, x, x, u_reading=-1.0)
+    with pytest.raises(ValueError, match="u_reference"):
+        verify(x, x, x, x, u_reference=math.inf)
+    with pytest.raises(ValueError, match="mpe"):
+        verify(x, x, x, x, mpe=0.0)
+    with pytest.raises(ValueError, match="inside"):
+        verify(x, x, x, x, inside=np.ones(3, bool))
+
+
+def test_model_check_points_use_the_device_stage():
+    """verify_model corrects with the device GP (its own predict, exactly), takes the
+    learned white noise as a reading's u by default, leaves out-of-range points out, and
+    on the demo's truth the errors are about the size of the stated uncertainty."""
+    case = linear_demo(0)
+    model = fit_model(demo_stages(case), n_restarts=2)
+    gp = model.fitted.device
+    v = verify_model(model, case.readings, case.truth, u_reference=1e-6)
+    mean, std = gp.predict(case.readings, return_std=True)
+    assert_allclose(v.corrected, mean, rtol=0, atol=1e-12)
+    assert_allclose(v.u_calibration, std, rtol=1e-10)
+    assert v.u_reading == reading_u(model) == math.sqrt(gp.noise_variance) > 0
+    lo, hi = model.calibrated_range
+    assert np.array_equal(v.inside, (case.readings >= lo) & (case.readings <= hi))
+    assert v.summary()["outside_range"] == 1
+    exact = verify_model(model, case.readings, case.truth, u_reading=0.0)
+    s = exact.summary()
+    assert 0.5 < s["rms_normalised"] < 2.0
+    assert s["rms_after"] < 1e-3 * s["rms_before"]
+
+
+def test_rotary_model_check_points_across_the_seam():
+    case = rotary_demo(0)
+    model = fit_model(demo_stages(case), kernel="periodic", period=360.0, unit="deg",
+                      n_restarts=2)  # fmt: skip
+    turned = case.truth + 360.0 * np.where(case.truth < 180.0, 1.0, -1.0)
+    a = verify_model(model, case.readings, case.truth, u_reading=0.0)
+    b = verify_model(model, case.readings, turned, u_reading=0.0)
+    assert_allclose(b.error, a.error, rtol=0, atol=1e-9)
+    assert a.inside.all() and np.max(np.abs(a.error)) < 1e-3
