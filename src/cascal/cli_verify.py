@@ -62,8 +62,8 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     worst = int(np.flatnonzero(m)[np.argmax(np.abs(v.error[m]))])
     print(f"  error before correction: RMS {s['rms_before']:.4g} {unit}")
     print(
-        f"  error after correction:  RMS {s['rms_after']:.4g} {unit} "
-        f"({s['rms_before'] / s['rms_after']:.0f}x smaller), largest "
+        f"  error after correction:  RMS {s['rms_after']:.4g} {unit}"
+        f"{_ratio(s['rms_before'], s['rms_after'])}, largest "
         f"{abs(v.error[worst]):.4g} {unit} (row {int(table.rows[worst])}, "
         f"reading {v.reading[worst]:.9g})"
     )
@@ -130,6 +130,12 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         return EXIT_FAILURE
     print("Verification passed." if v.mpe is not None else "No --mpe given: reported, not judged.")
     return 0
+
+
+def _ratio(before: float, after: float) -> str:
+    if after < before:
+        return f" ({before / after:.0f}x smaller)" if after > 0 else " (none left)"
+    return " (no smaller than before: is this the model of this device?)"
 
 
 def add_verify_parser(sub: argparse._SubParsersAction) -> None:
