@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from cascal.demo import DemoCase
 from cascal.io.csvout import auto_decimals, write_columns
 
-__all__ = ["run_cascal", "write_case"]
+__all__ = ["assert_refused", "run_bad_cases", "run_cascal", "write_case"]
 
 _SCRIPT = Path(sys.executable).with_name("cascal")
 
@@ -20,6 +21,31 @@ def run_cascal(*args: object, timeout: float = 300) -> subprocess.CompletedProce
     return subprocess.run(
         [*cmd, *map(str, args)], capture_output=True, text=True, timeout=timeout, check=False
     )
+
+
+def run_bad_cases(command: str, cases: dict, tmp: Path) -> dict:
+    """Run ``cascal command *args`` for every ``name: (args, words)`` of ``cases``, four at
+    a time, each with ``-o tmp/<name>.x`` unless its args hold ``-o``; returns ``name:
+    (result, words, that output path)``."""
+    with ThreadPoolExecutor(4) as pool:
+        futures = {
+            name: pool.submit(
+                run_cascal, command, *args, *([] if "-o" in args else ["-o", tmp / f"{name}.x"])
+            )
+            for name, (args, _) in cases.items()
+        }
+        return {
+            name: (f.result(), cases[name][1], tmp / f"{name}.x") for name, f in futures.items()
+        }
+
+
+def assert_refused(res: subprocess.CompletedProcess, words: list, out: Path) -> None:
+    """Exit status 2, no traceback, every one of ``words`` in stderr, ``out`` not written."""
+    assert res.returncode == 2, (res.stdout, res.stderr)
+    assert "Traceback" not in res.stderr
+    for w in words:
+        assert w in res.stderr, (w, res.stderr)
+    assert not out.exists()
 
 
 def write_case(case: DemoCase, folder: Path) -> tuple[list[Path], Path]:
