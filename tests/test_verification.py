@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from cascal.demo import linear_demo, rotary_demo
 from cascal.verification import expected_within, verify
-from cascal.workflow import fit_model, reading_u, verify_model
+from cascal.workflow import fit_model, verify_model
 from utils import assert_allclose, demo_stages
 
 
@@ -74,7 +74,22 @@ def test_rotary_errors_go_the_shortest_way_round():
     ref = np.array([0.01, 359.99, 180.0 + 360.0, 370.0 + 0.5])
     v = verify(c, ref, c, np.ones(4), period=360.0)
     assert_allclose(v.error, [-0.02, 0.02, 0.0, -0.5], atol=1e-12, rtol=0)
+    assert_allclose(v.error_before, v.error, atol=0, rtol=0)
     assert np.all(np.abs(verify(c, ref, c, np.ones(4)).error[:2]) > 359)
+    before = verify(c + 1.0, ref, c, np.ones(4), period=360.0).error_before
+    assert_allclose(before, [0.98, 1.02, 1.0, 0.5], atol=1e-12, rtol=0)
+
+
+def test_exact_points_and_huge_errors():
+    """A zero error with zero u is inside U (En 0); the RMS of errors near the largest
+    doubles does not overflow."""
+    x = np.array([1.0, 2.0])
+    v = verify(x, x, x, np.zeros(2))
+    assert np.array_equal(v.en, [0.0, 0.0]) and v.summary()["within_U"] == 2
+    big = verify(x, np.array([-1e300, 1e300]), np.array([1e300, -1e300]), np.ones(2))
+    with np.errstate(all="raise"):
+        s = big.summary()
+    assert math.isclose(s["rms_after"], 2e300) and math.isclose(s["rms_normalised"], 2e300)
 
 
 def test_lookup_table_without_uncertainty_and_bad_arguments():
@@ -97,22 +112,21 @@ def test_lookup_table_without_uncertainty_and_bad_arguments():
 
 
 def test_model_check_points_use_the_device_stage():
-    """verify_model corrects with the device GP (its own predict, exactly), takes the
-    learned white noise as a reading's u by default, leaves out-of-range points out, and
-    on the demo's truth the errors are about the size of the stated uncertainty."""
+    """verify_model corrects with the device GP (its own predict, exactly), counts only
+    the calibration's u by default, leaves out-of-range points out, and on the demo's truth
+    the errors are about the size of the stated uncertainty."""
     case = linear_demo(0)
     model = fit_model(demo_stages(case), n_restarts=2)
     gp = model.fitted.device
-    v = verify_model(model, case.readings, case.truth, u_reference=1e-6)
+    v = verify_model(model, case.readings, case.truth)
     mean, std = gp.predict(case.readings, return_std=True)
     assert_allclose(v.corrected, mean, rtol=0, atol=1e-12)
     assert_allclose(v.u_calibration, std, rtol=1e-10)
-    assert v.u_reading == reading_u(model) == math.sqrt(gp.noise_variance) > 0
+    assert v.u_reading == 0.0 and v.u_reference == 0.0 and np.array_equal(v.u, v.u_calibration)
     lo, hi = model.calibrated_range
     assert np.array_equal(v.inside, (case.readings >= lo) & (case.readings <= hi))
-    assert v.summary()["outside_range"] == 1
-    exact = verify_model(model, case.readings, case.truth, u_reading=0.0)
-    s = exact.summary()
+    s = v.summary()
+    assert s["outside_range"] == 1
     assert 0.5 < s["rms_normalised"] < 2.0
     assert s["rms_after"] < 1e-3 * s["rms_before"]
 

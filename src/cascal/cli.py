@@ -20,6 +20,7 @@ __all__ = ["main"]
 
 EXIT_BAD_INPUT = 2
 EXIT_FAILURE = 1  # an output could not be written, or some devices of a fleet failed
+EXIT_NOT_CONFORMING = 3  # cascal verify: a check point is not shown to conform to the MPE
 
 
 def _cmd_example(args: argparse.Namespace) -> int:
@@ -107,17 +108,22 @@ def same_file(a: str | Path, b: str | Path) -> bool:
         return False
 
 
+#: Options that take a number, whose value may start with a minus sign (see join_negative).
+NUMBER_OPTIONS = ("--noise-std", "--reading-u", "--reference-u", "--mpe", "--tolerance", "--period")
+
+
 def join_negative(argv: list[str]) -> list[str]:
-    """``--reach -0.04:0.3`` as ``--reach=-0.04:0.3`` (for the options that take a reading
-    or an interval): argparse takes a value that starts with ``-`` and is not a plain
-    decimal for an option. Nothing after ``--`` is changed."""
+    """``--reach -0.04:0.3`` as ``--reach=-0.04:0.3`` (for the options that take a number,
+    a reading or an interval): argparse takes a value that starts with ``-`` and is not a
+    plain decimal (``-1e-3``) for an option. Nothing after ``--`` is changed."""
     from .cli_plan import INTERVAL_OPTIONS
 
+    options = INTERVAL_OPTIONS + NUMBER_OPTIONS
     out: list[str] = []
     for i, a in enumerate(argv):
         if a == "--":
             return out + argv[i:]
-        if out and out[-1] in INTERVAL_OPTIONS and _negative_value(a):
+        if out and out[-1] in options and _negative_value(a):
             out[-1] = f"{out[-1]}={a}"
         else:
             out.append(a)

@@ -95,13 +95,12 @@ def _run_case(case: DemoCase, folder: Path, main: Callable[[Sequence[str]], int]
             "--plot",
             str(folder / "plan.png"),
         ],
-        # The truth is the true position at each reading: a reading adds no uncertainty.
+        # The truth is the map's exact value at each noisy reading: its noise is no part of
+        # the error, so --reading-u stays 0.
         [
             "verify",
             str(model),
             str(truth),
-            "--reading-u",
-            "0",
             "-o",
             str(folder / "verify.csv"),
             "--plot",

@@ -6,16 +6,18 @@ import argparse
 
 __all__ = ["add_verify_parser"]
 
-#: Warn when the RMS of error / u exceeds this. Neighbouring check points share the
-#: calibration's error, so they count as few independent ones; but even one standard normal
-#: error exceeds 3 in only 0.27 % of cases.
+#: Warn when the RMS of error / u exceeds this (or lies below its inverse). Neighbouring
+#: check points share the calibration's error, so they count as few independent ones; but
+#: even one standard normal error exceeds 3 in only 0.27 % of cases.
 _TOO_LARGE = 3.0
+#: Readings, reference values and options at or above this size are refused.
+_HUGE = 1e150
 
 
 def _cmd_verify(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import EXIT_FAILURE, check_outputs, warn
+    from .cli import EXIT_NOT_CONFORMING, check_outputs, warn
     from .errors import InputError
     from .io.csvout import auto_decimals, write_columns
     from .io.data import read_table
@@ -25,79 +27,106 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 
     check_outputs(args.output, args.plot, inputs=(args.model, args.check))
     for option, value in (("--reading-u", args.reading_u), ("--reference-u", args.reference_u)):
-        if value is not None and not (0 <= value < 1e150):
+        if not (0 <= value < _HUGE):
             raise InputError(f"{option}: expected a number >= 0 below 1e150, got {value}")
-    if args.mpe is not None and not (0 < args.mpe < 1e150):
+    if args.mpe is not None and not (0 < args.mpe < _HUGE):
         raise InputError(f"--mpe: expected a number > 0 below 1e150, got {args.mpe}")
+    if args.x_column is not None and args.x_column == args.y_column:
+        raise InputError(f"--x-column and --y-column both name {args.x_column!r}; give two")
     model = load_model(args.model)
     hint = "; choose two by name with --x-column and --y-column"
     table = read_table(args.check, (args.x_column, args.y_column), hint=hint)
+    for name, col in zip(table.source.columns, table.columns, strict=True):
+        big = np.flatnonzero(np.abs(col) >= _HUGE)
+        if big.size:
+            raise InputError(
+                f"{col[big[0]]!r} is too large for a reading (|value| < 1e150 expected)",
+                file=args.check,
+                row=int(table.rows[big[0]]),
+                column=name,
+            )
     reading, reference = table.columns
     v = verify_model(
         model,
         reading,
         reference,
         u_reading=args.reading_u,
-        u_reference=args.reference_u or 0.0,
+        u_reference=args.reference_u,
         mpe=args.mpe,
     )
     s, unit = v.summary(), model.unit
     lo, hi = model.calibrated_range
+    where = f"the calibrated range [{lo:.9g}, {hi:.9g}] {unit}"
     if s["points"] == 0:
-        raise InputError(
-            f"no check point lies inside the calibrated range [{lo:.9g}, {hi:.9g}] {unit}",
-            file=args.check,
-        )
+        raise InputError(f"no check point lies inside {where}", file=args.check)
+    fig = None
+    if args.plot is not None:  # drawn before anything is written
+        from .report import verification_figure
+
+        fig = verification_figure(model, v)
+    m = v.inside
     outside = ""
     if s["outside_range"]:
-        first = int(table.rows[np.argmax(~v.inside)])
-        outside = f" ({s['outside_range']} outside the calibrated range left out)"
+        first = int(table.rows[np.argmax(~m)])
+        outside = f"; {s['outside_range']} outside {where} left out"
         warn(
             "verify",
-            f"{s['outside_range']} of {v.inside.size} check points lie outside the calibrated "
-            f"range [{lo:.9g}, {hi:.9g}] {unit} (first: {args.check}, row {first}); left out",
+            f"{s['outside_range']} of {m.size} check points lie outside {where} (first: "
+            f"{args.check}, row {first}); they are not judged",
         )
-    print(f"Verified {args.model} at {s['points']} check points of {args.check}{outside}.")
-    m = v.inside
+    n = s["points"]
+    print(f"Verified {args.model} at {_points(n)} of {args.check}{outside}.")
     worst = int(np.flatnonzero(m)[np.argmax(np.abs(v.error[m]))])
     print(f"  error before correction: RMS {s['rms_before']:.4g} {unit}")
     print(
         f"  error after correction:  RMS {s['rms_after']:.4g} {unit}"
-        f"{_ratio(s['rms_before'], s['rms_after'])}, largest "
-        f"{abs(v.error[worst]):.4g} {unit} (row {int(table.rows[worst])}, "
-        f"reading {v.reading[worst]:.9g})"
+        f"{_ratio(s['rms_before'], s['rms_after'])}, largest {abs(v.error[worst]):.4g} {unit} "
+        f"(row {int(table.rows[worst])}, reading {v.reading[worst]:.9g})"
     )
-    source = " (given)" if args.reading_u is not None else " (the model's learned noise)"
+    reading_note = "" if args.reading_u else " (not given: --reading-u)"
+    reference_note = "" if args.reference_u else " (taken as exact: --reference-u)"
     if v.has_u:
         uc = v.u_calibration[m]
         print(
             f"  standard uncertainty: calibration {uc.min():.3g} to {uc.max():.3g} {unit}, "
-            f"one reading {v.u_reading:.3g} {unit}{source}, reference {v.u_reference:.3g} {unit}"
+            f"one reading {v.u_reading:.3g} {unit}{reading_note}, reference "
+            f"{v.u_reference:.3g} {unit}{reference_note}"
         )
-        expected = expected_within(v.k)
+        z = s["rms_normalised"]
         print(
-            f"  |error| <= U = {v.k:g} u at {s['within_U']} of {s['points']} points "
-            f"({100 * s['within_U'] / s['points']:.1f} %, about {100 * expected:.1f} % expected); "
-            f"RMS of error / u {s['rms_normalised']:.3g} (about 1 expected)"
+            f"  |error| <= U = {v.k:g} u at {s['within_U']} of {n} "
+            f"({100 * s['within_U'] / n:.1f} %, about {100 * expected_within(v.k):.1f} % "
+            f"expected); RMS of error / u {z:.3g} (about 1 expected)"
         )
-        if s["rms_normalised"] > _TOO_LARGE:
+        if z > _TOO_LARGE:
             warn(
                 "verify",
-                f"the errors are {s['rms_normalised']:.3g} times their standard uncertainty "
-                "(RMS): the model's uncertainty is too small for these check points; has the "
-                "device or the test bed changed since the fit, or are --reading-u and "
-                "--reference-u too small?",
+                f"the errors are {z:.3g} times their standard uncertainty (RMS): the model's "
+                "uncertainty is too small for these check points; has the device or the test "
+                "bed changed since the fit, or are --reading-u and --reference-u too small?",
+            )
+        elif z < 1.0 / _TOO_LARGE:
+            warn(
+                "verify",
+                f"the errors are only {z:.3g} times their standard uncertainty (RMS): these "
+                "check points test little of the model's uncertainty; are --reading-u and "
+                "--reference-u too large?",
             )
     else:
         warn("verify", "method lut gives no uncertainty: En and the U columns are left empty")
     bad = 0
     if v.conforms is not None:
-        bad = s["points"] - s["conforming"]
+        bad = n - s["conforming"]
         rule = f"|error| + {v.k:g} u_reference <= MPE"
-        print(
-            f"  MPE {v.mpe:.4g} {unit}: {s['conforming']} of {s['points']} points conform ({rule})"
-        )
+        print(f"  MPE {v.mpe:.4g} {unit}: {s['conforming']} of {n} conform ({rule})")
+        if not args.reference_u:
+            warn(
+                "verify",
+                "reference values taken as exact (no --reference-u): the MPE check has no "
+                "guard band for the reference's own uncertainty",
+            )
     if args.output is not None:
+        judged = np.where(m, 1.0, np.nan)  # points outside the range are not judged
         cols = {
             "reading": v.reading,
             "reference": v.reference,
@@ -106,30 +135,36 @@ def _cmd_verify(args: argparse.Namespace) -> int:
             "u_calibration": v.u_calibration,
             "u": v.u,
             "U": v.k * v.u,
-            "En": v.en,
-            "out_of_range": ~v.inside,
+            "En": v.en * judged,
+            "out_of_range": ~m,
         }
-        if v.mpe is not None:
-            cols["conforms"] = v.conforms
+        if v.conforms is not None:
+            cols["conforms"] = np.ma.masked_array(v.conforms, ~m)
         decimals = auto_decimals(
             [v.reading[m], v.reference[m], v.corrected[m]], v.u[m] if v.has_u else None
         )
         print(f"Check points written to {write_columns(args.output, cols, decimals=decimals)}")
-    if args.plot is not None:
+    if fig is not None:
         from .io.atomic import save_figure
-        from .report import verification_figure
 
-        fig = verification_figure(model, v)
         print(f"Figure written to {save_figure(fig, args.plot, dpi=130)}")
+    not_judged = f"; {s['outside_range']} outside the range not judged" if outside else ""
     if bad:
         first = int(table.rows[np.argmax(m & ~v.conforms)])
         print(
-            f"Verification failed: {bad} check point(s) not shown to conform to the MPE "
-            f"(first: row {first})."
+            f"Verification failed: {_points(bad)} not shown to conform to the MPE "
+            f"(first: row {first}){not_judged}."
         )
-        return EXIT_FAILURE
-    print("Verification passed." if v.mpe is not None else "No --mpe given: reported, not judged.")
+        return EXIT_NOT_CONFORMING
+    if v.mpe is not None:
+        print(f"Verification passed: all {_points(n)} conform{not_judged}.")
+    else:
+        print("No --mpe given: reported, not judged.")
     return 0
+
+
+def _points(n: int) -> str:
+    return f"{n} check point{'' if n == 1 else 's'}"
 
 
 def _ratio(before: float, after: float) -> str:
@@ -146,7 +181,7 @@ def add_verify_parser(sub: argparse._SubParsersAction) -> None:
         description="Correct the device readings of check points the fit never saw and "
         "compare them with the reference: errors before and after correction, how many lie "
         "within the expanded uncertainty U = 2u, and, with --mpe, conformance to a maximum "
-        "permissible error (exit status 1 when a point is not shown to conform).",
+        "permissible error (exit status 3 when a point is not shown to conform).",
     )
     p.add_argument("model", metavar="MODEL.json")
     p.add_argument(
@@ -159,13 +194,15 @@ def add_verify_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--reading-u",
         type=float,
+        default=0.0,
         metavar="S",
-        help="standard uncertainty of one device reading, in the model's unit (default: the "
-        "white noise the last stage learned, which errs on the large side; 0 for lut)",
+        help="standard uncertainty of one device reading (its repeatability), in the model's "
+        "unit (default 0: not counted)",
     )
     p.add_argument(
         "--reference-u",
         type=float,
+        default=0.0,
         metavar="S",
         help="standard uncertainty of one reference value (default 0: taken as exact)",
     )

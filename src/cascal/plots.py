@@ -19,6 +19,8 @@ __all__ = ["plot_cascade", "plot_cost_distribution", "plot_plan", "plot_stage", 
 
 #: A plan's figure numbers this many of its first proposals.
 _NUMBERED = 12
+#: A verification figure draws U as a band from this many check points, else error bars.
+_BAND_POINTS = 50
 
 
 def plot_stage(
@@ -254,8 +256,10 @@ def plot_verification(
     xunit: str = "m",
 ) -> Figure:
     """Check points' errors after correction against the reading, with the expanded
-    uncertainty ``k u`` of each (a band), points outside it marked, and the MPE if given.
-    Points outside the calibrated range are left out.
+    uncertainty ``k u`` of each (a band, or error bars for fewer than 50 points), points
+    outside it and points not shown to conform to the MPE marked, and the MPE if given.
+    Points outside the calibrated range are left out; a rotary model's readings are drawn
+    on one turn.
 
     Args:
         v: The verification of :func:`cascal.verification.verify`.
@@ -265,31 +269,39 @@ def plot_verification(
         fig = Figure(figsize=(7.5, 3.6), layout="constrained")
     ax = fig.subplots()
     m = v.inside
-    order = np.argsort(v.reading[m], kind="stable")
-    r, e = v.reading[m][order], v.error[m][order] * scale
+    r = v.reading[m] if v.period is None else np.mod(v.reading[m], v.period)
+    order = np.argsort(r, kind="stable")
+    r, e = r[order], v.error[m][order] * scale
+    out = np.zeros(r.shape, bool)
     if v.has_u:
         band = v.k * v.u[m][order] * scale
-        ax.fill_between(r, -band, band, color="C0", alpha=0.2, lw=0, label=f"±U (k = {v.k:g})")
+        label = f"±U (k = {v.k:g})"
+        if r.size >= _BAND_POINTS:
+            ax.fill_between(r, -band, band, color="C0", alpha=0.2, lw=0, label=label)
+        else:
+            ax.errorbar(r, e, yerr=band, fmt="none", ecolor="C0", alpha=0.5, label=label)
         out = (v.en[m] > 1.0)[order]
-    else:
-        out = np.zeros(r.shape, bool)
     ax.axhline(0.0, color="k", lw=0.6)
-    ax.plot(r[~out], e[~out], ".", color="C0", ms=3, label="error after correction")
+    ms = 3 if r.size >= _BAND_POINTS else 5
+    ax.plot(r[~out], e[~out], ".", color="C0", ms=ms, label="error after correction")
     if np.any(out):
         ax.plot(r[out], e[out], "x", color="C3", ms=5, label="outside ±U")
+    title = f"{r.size} check points: RMS error {v.summary()['rms_after'] * scale:.3g} {unit}"
+    if v.has_u:
+        title += f", {100 * np.mean(~out):.1f} % within ±U"
     if v.mpe is not None:
-        for s in (-1.0, 1.0):
-            ax.axhline(
-                s * v.mpe * scale, color="C1", ls="--", lw=1, label="±MPE" if s > 0 else None
-            )
+        for sign in (-1.0, 1.0):
+            ax.axhline(sign * v.mpe * scale, color="C1", ls="--", lw=1,
+                       label="±MPE" if sign > 0 else None)  # fmt: skip
+        failing = ~v.conforms[m][order]
+        if np.any(failing):
+            ax.plot(r[failing], e[failing], "o", mfc="none", mec="C1", ms=7,
+                    label="not shown to conform")  # fmt: skip
+        title += f"; {np.count_nonzero(failing)} not shown to conform to the MPE"
     ax.set_xlabel(f"device reading [{xunit}]")
     ax.set_ylabel(f"corrected - reference [{unit}]")
-    summary = v.summary()
-    title = f"{summary['points']} check points: RMS error {summary['rms_after'] * scale:.3g} {unit}"
-    if summary["within_U"] is not None:
-        title += f", {100 * summary['within_U'] / summary['points']:.1f} % within ±U"
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=4, frameon=False)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=5, frameon=False)
     return fig
 
 

@@ -48,6 +48,7 @@ class Verification:
         inside: True where the reading lies in the calibrated range, shape (m,).
         mpe: Maximum permissible error, or None.
         k: Coverage factor of the expanded uncertainties.
+        period: A rotary model's period, or None.
     """
 
     reading: np.ndarray
@@ -61,6 +62,7 @@ class Verification:
     inside: np.ndarray
     mpe: float | None = None
     k: float = COVERAGE_FACTOR
+    period: float | None = None
 
     @property
     def u(self) -> np.ndarray:
@@ -69,9 +71,11 @@ class Verification:
 
     @property
     def en(self) -> np.ndarray:
-        """Normalised error ``|error| / (k u)``, shape (m,); NaN without a calibration u."""
+        """Normalised error ``|error| / (k u)``, shape (m,) (0 where the error is 0); NaN
+        without a calibration u."""
+        e = np.abs(self.error)
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.abs(self.error) / (self.k * self.u)
+            return np.where(e == 0.0, 0.0 * self.u, e / (self.k * self.u))
 
     @property
     def conforms(self) -> np.ndarray | None:
@@ -105,7 +109,7 @@ class Verification:
         }
         if self.has_u and n:
             out["within_U"] = int(np.count_nonzero(self.en[m] <= 1.0))
-            out["rms_normalised"] = _rms(e / self.u[m])
+            out["rms_normalised"] = _rms(self.en[m] * self.k)
         conforms = self.conforms
         if conforms is not None:
             out["conforming"] = int(np.count_nonzero(conforms[m]))
@@ -163,6 +167,7 @@ def verify(
         inside,
         None if mpe is None else float(mpe),
         float(k),
+        None if period is None else float(period),
     )
 
 
@@ -174,4 +179,9 @@ def _difference(a: np.ndarray, b: np.ndarray, period: float | None) -> np.ndarra
 
 
 def _rms(v: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(v * v))) if v.size else math.nan
+    if not v.size:
+        return math.nan
+    top = float(np.max(np.abs(v)))
+    if not 0.0 < top < math.inf:
+        return top
+    return top * float(np.sqrt(np.mean((v / top) ** 2)))  # no overflow of v * v

@@ -38,7 +38,6 @@ __all__ = [
     "fit_devices",
     "fit_model",
     "plan_measurements",
-    "reading_u",
     "summarize_device",
     "verify_model",
 ]
@@ -175,27 +174,18 @@ def correct(model: CalibrationModel, readings: object) -> Correction:
     return Correction(r, corrected, u, out)
 
 
-def reading_u(model: CalibrationModel) -> float:
-    """Standard uncertainty of one device reading by default: the square root of the white
-    noise variance the last stage learned (it holds the device's repeatability and the test
-    bed's, so it errs on the large side); 0.0 for a lookup-table model."""
-    device = model.fitted.device
-    return float(np.sqrt(device.noise_variance)) if isinstance(device, FittedGP) else 0.0
-
-
 def verify_model(
     model: CalibrationModel,
     reading: object,
     reference: object,
     *,
-    u_reading: float | None = None,
+    u_reading: float = 0.0,
     u_reference: float = 0.0,
     mpe: float | None = None,
 ) -> Verification:
     """Verify ``model`` at independent check points: device readings (m,) and the
     reference's values there (m,). Points outside the calibrated range are corrected but
-    left out of the statistics. ``u_reading`` defaults to :func:`reading_u`; see
-    :func:`cascal.verification.verify` for the rest.
+    left out of the statistics; see :func:`cascal.verification.verify` for the rest.
     """
     c = correct(model, reading)
     return verify(
@@ -204,7 +194,7 @@ def verify_model(
         c.corrected,
         c.u,
         inside=~c.out_of_range,
-        u_reading=reading_u(model) if u_reading is None else u_reading,
+        u_reading=u_reading,
         u_reference=u_reference,
         period=model.period if model.periodic else None,
         mpe=mpe,

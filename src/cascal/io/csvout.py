@@ -48,7 +48,8 @@ def format_columns(columns: Sequence[np.ndarray], decimals: int) -> bytes | None
 
     Float columns get ``decimals`` decimals: each value is rounded to the nearest multiple
     of ``10**-decimals`` (up to the rounding of ``value * 10**decimals`` in float64); NaN
-    becomes an empty cell. Integer and boolean columns are written as integers. The text is
+    becomes an empty cell. Integer and boolean columns are written as integers, and their
+    masked entries (a :class:`numpy.ma.MaskedArray`) as empty cells. The text is
     built by integer arithmetic on whole columns, in blocks of rows on several threads.
     Returns None when a value is too large for exact integers
     (``|value| * 10**decimals >= 2**53``).
@@ -57,7 +58,7 @@ def format_columns(columns: Sequence[np.ndarray], decimals: int) -> bytes | None
         columns: Arrays, each shape (n,).
         decimals: Decimals of the float columns, 0 to 17.
     """
-    cols = [np.asarray(c) for c in columns]
+    cols = [np.asanyarray(c) for c in columns]
     n = cols[0].size if cols else 0
     workers = min(os.cpu_count() or 1, 8)
     if n < _THREADED_ROWS or workers == 1:
@@ -74,7 +75,7 @@ def _format_block(cols: list[np.ndarray], decimals: int) -> bytes | None:
     plans = []
     for v in cols:
         k = 0 if v.dtype.kind in "biu" else decimals
-        v = v.astype(float)
+        v = np.ma.filled(v.astype(float), np.nan)
         ok = np.isfinite(v)
         q = np.rint((np.abs(v) if ok.all() else np.where(ok, np.abs(v), 0.0)) * 10.0**k)
         if q.size and float(q.max()) >= 2.0**53:
@@ -140,12 +141,14 @@ def write_columns(
 
 
 def _write_slow(path: str | os.PathLike, columns: dict[str, np.ndarray]) -> Path:
-    def cell(x: float | int) -> str:
+    def cell(x: float | int | None) -> str:
+        if x is None:  # masked
+            return ""
         if isinstance(x, float):
             return repr(x) if math.isfinite(x) else ""
         return str(int(x))
 
-    lists = [np.asarray(c).tolist() for c in columns.values()]
+    lists = [np.ma.asarray(c).tolist() for c in columns.values()]
     text = ",".join(columns) + "\n"
     text += "".join(",".join(cell(x) for x in row) + "\n" for row in zip(*lists, strict=True))
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
