@@ -40,7 +40,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         big = np.flatnonzero(np.abs(col) >= _HUGE)
         if big.size:
             raise InputError(
-                f"{col[big[0]]!r} is too large for a reading (|value| < 1e150 expected)",
+                f"{float(col[big[0]])!r} is too large (|value| < 1e150 expected)",
                 file=args.check,
                 row=int(table.rows[big[0]]),
                 column=name,
