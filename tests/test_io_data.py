@@ -165,3 +165,12 @@ def test_separator_fits_the_data_rows(tmp_path, text, names):
     table = read_table(path, (None, None))
     assert list(table.source.columns) == names
     assert np.array_equal(table.columns[1], [1.1, 2.05, 3.2])
+
+
+def test_values_too_large_are_named_when_a_bound_is_given(tmp_path):
+    p = tmp_path / "big.csv"
+    p.write_text("a,b\n1,2\n3,-1e200\n")
+    assert read_table(p, (None, None)).columns[1][1] == -1e200  # no bound: accepted
+    with pytest.raises(InputError, match=r"big.csv, row 3, column 'b': -1e\+200 is too large"):
+        read_table(p, (None, None), max_abs=1e150)
+    assert read_table(p, ("a",), max_abs=1e150).columns[0][1] == 3.0  # b not wanted

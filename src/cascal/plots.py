@@ -286,9 +286,10 @@ def plot_verification(
     ax.plot(r[~out], e[~out], ".", color="C0", ms=ms, label="error after correction")
     if np.any(out):
         ax.plot(r[out], e[out], "x", color="C3", ms=5, label="outside ±U")
-    title = f"{r.size} check points: RMS error {v.summary()['rms_after'] * scale:.3g} {unit}"
-    if v.has_u:
-        title += f", {100 * np.mean(~out):.1f} % within ±U"
+    s = v.summary()
+    title = f"{s['points']} check points: RMS error {s['rms_after'] * scale:.3g} {unit}"
+    if s["within_U"] is not None:
+        title += f", {100 * s['within_U'] / s['points']:.1f} % within ±U"
     if v.mpe is not None:
         for sign in (-1.0, 1.0):
             ax.axhline(sign * v.mpe * scale, color="C1", ls="--", lw=1,

@@ -102,6 +102,7 @@ def read_table(
     *,
     hint: str = "",
     min_rows: int = 1,
+    max_abs: float | None = None,
 ) -> Table:
     """Read numeric columns of a CSV file with a header row.
 
@@ -112,6 +113,7 @@ def read_table(
             order (the file must then have exactly ``len(columns)`` columns).
         hint: Appended to the message about missing or extra columns.
         min_rows: Fewest data rows accepted.
+        max_abs: If given, values of the wanted columns must lie below it in magnitude.
 
     Raises:
         InputError: Naming the file, row and column of the first problem.
@@ -146,6 +148,16 @@ def read_table(
         )
     names = tuple(header[i] for i in idx)
     cols = tuple(np.ascontiguousarray(values[:, i]) for i in idx)
+    if max_abs is not None:
+        for column, col in zip(names, cols, strict=True):
+            big = np.flatnonzero(np.abs(col) >= max_abs)
+            if big.size:
+                raise InputError(
+                    f"{float(col[big[0]])!r} is too large (|value| < {max_abs:g} expected)",
+                    file=name,
+                    row=int(rows[big[0]]),
+                    column=column,
+                )
     return Table(cols, rows, Source(name, digest, int(rows.size), names))
 
 
