@@ -1,0 +1,171 @@
+"""Outlier screening: leave-one-out residuals against refits written out, backward deletion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.stats import norm
+
+from cascal.cascade import Cascade, Stage
+from cascal.gp import fit_gp
+from cascal.kernels import SquaredExp
+from cascal.montecarlo import trial_rng
+from cascal.noise import Dense
+from cascal.screening import loo_residuals, screen, threshold
+from cascal.simulation import simulate_trial
+from utils import assert_allclose, se
+
+
+def _conditional(Kt: np.ndarray, r: np.ndarray, i: int) -> tuple[float, float]:
+    """Mean and standard deviation of r_i given the other entries, N(0, Kt), by solves."""
+    o = np.delete(np.arange(len(r)), i)
+    w = np.linalg.solve(Kt[np.ix_(o, o)], Kt[o, i])
+    return float(w @ r[o]), float(np.sqrt(Kt[i, i] - Kt[i, o] @ w))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(4, 30), dense=st.booleans())
+def test_loo_residuals_against_conditionals_written_out(seed, n, dense):
+    rng = np.random.default_rng(seed)
+    x = np.sort(rng.uniform(0.0, 1.0, n)) + np.arange(n) * 1e-3
+    y = x + 0.01 * np.sin(7 * x) + rng.normal(0.0, 1e-3, n)
+    ell, var, sn2 = rng.uniform(0.1, 0.5), rng.uniform(1e-5, 1e-4), rng.uniform(1e-7, 1e-5)
+    U = rng.normal(0.0, 1e-3, (n, 3))
+    noise = Dense(U @ U.T) if dense else None
+    hp = {"length_scale": ell, "variance": var, "noise_variance": sn2}
+    gp = fit_gp(x, y, noise=noise, learn_noise=True, hyperparameters=hp)
+    Kt = se(x, x, ell, var) + sn2 * np.eye(n) + (U @ U.T if dense else 0.0)
+    residual, std = loo_residuals(gp)
+    for i in range(n):
+        mean, sd = _conditional(Kt, y - x, i)
+        assert_allclose(residual[i], (y[i] - x[i]) - mean, rtol=1e-7, atol=1e-12)
+        assert_allclose(std[i], sd, rtol=1e-7)
+
+
+def test_threshold_is_the_bonferroni_normal_quantile():
+    for n, level in ((64, 0.01), (2000, 0.01), (10, 0.05)):
+        assert_allclose(threshold(n, level), norm.isf(level / (2 * n)), rtol=1e-12)
+    assert round(threshold(64), 2) == 3.78 and round(threshold(2000), 2) == 4.56
+
+
+def _trial(index: int, seed: int = 7):
+    return simulate_trial(trial_rng(seed, index))
+
+
+def test_clean_stages_give_standard_normal_scores_and_rare_alarms():
+    """On the paper's simulated stages the scores are N(0, 1): RMS near 1, 4.6 % beyond 2,
+    and a stage holds a suspect about as often as the 1 % level says."""
+    z, alarms = [], 0
+    for i in range(60):
+        tr = _trial(i)
+        fitted = Cascade([tr.d2, tr.d1], "bayes").fit()
+        for gp in fitted.models:
+            s = screen(gp)
+            z.append(s.z)
+            alarms += bool(s.suspects)
+    z = np.concatenate(z)
+    assert z.size == 60 * (64 + 100)
+    assert 0.97 < np.sqrt(np.mean(z**2)) < 1.03
+    assert 0.038 < np.mean(np.abs(z) > 2) < 0.054
+    assert alarms <= 4  # 120 stages at 1 %: 1.2 expected
+
+
+def test_backward_deletion_finds_two_neighbouring_outliers_the_first_fit_hides():
+    tr = _trial(0)
+    x, y = tr.d2
+    clean = fit_gp(x, y)
+    bad = y.copy()
+    bad[30] += 1e-3  # about 7 and 14 noise standard deviations, next to each other
+    bad[31] -= 2e-3
+    gp = fit_gp(x, bad)
+    s = screen(gp)
+    assert [q.index for q in s.suspects] == [31, 30]
+    assert s.suspects[0].z < -10 and s.suspects[1].z > 5
+    # As given, the outliers inflate the learned noise and so hide each other...
+    assert np.sqrt(gp.noise_variance) > 2 * np.sqrt(clean.noise_variance)
+    assert abs(s.z[30]) < s.threshold
+    # ... without them the noise is the clean fit's (the other 62 points decide it).
+    assert s.noise_std == np.sqrt(gp.noise_variance)
+    assert abs(s.noise_std_without / np.sqrt(clean.noise_variance) - 1) < 0.2
+    assert not s.capped
+
+
+def test_a_suspect_is_judged_against_the_fit_without_every_suspect():
+    tr = _trial(1)
+    x, y = tr.d2
+    bad = y.copy()
+    bad[[10, 40]] += [2e-3, -3e-3]
+    s = screen(fit_gp(x, bad))
+    keep = np.ones(x.size, bool)
+    keep[[10, 40]] = False
+    without = fit_gp(x[keep], bad[keep])
+    assert s.noise_std_without == np.sqrt(without.noise_variance)
+    k = without.kernel
+    ell, var = k.params["length_scale"], k.params["variance"]
+    xs = np.r_[x[keep], x[[10, 40]]]
+    Kt = se(xs, xs, ell, var) + without.noise_variance * np.eye(xs.size)
+    r = bad[np.r_[np.flatnonzero(keep), [10, 40]]] - xs
+    for q in s.suspects:
+        j = keep.sum() + [10, 40].index(q.index)
+        o = np.arange(keep.sum())  # the suspect given the kept points only
+        w = np.linalg.solve(Kt[np.ix_(o, o)], Kt[o, j])
+        assert_allclose(q.predicted, xs[j] + w @ r[o], rtol=1e-9)
+        assert_allclose(q.std, np.sqrt(Kt[j, j] - Kt[j, o] @ w), rtol=1e-6)
+        assert q.reading == x[q.index] and q.target == bad[q.index]
+        assert_allclose(q.z, (q.target - q.predicted) / q.std, rtol=1e-12)
+
+
+def test_dense_noise_stage_refits_with_the_kept_rows_and_columns():
+    tr = _trial(2)
+    y1 = tr.d1[1].copy()
+    y1[50] += 2e-3
+    fitted = Cascade([tr.d2, Stage(tr.d1[0], y1)], "bayes").fit()
+    gp = fitted.models[1]
+    s = screen(gp)
+    assert [q.index for q in s.suspects] == [50]
+    keep = np.arange(100) != 50
+    Sigma = gp.noise.dense(100)
+    without = fit_gp(gp.x[keep], gp.y[keep], noise=Sigma[np.ix_(keep, keep)], learn_noise=True)
+    assert_allclose(s.noise_std_without, np.sqrt(without.noise_variance), rtol=1e-9)
+    # The correlated noise between the suspect and the rest enters its prediction.
+    C = without.kernel(gp.x) + Sigma + without.noise_variance * np.eye(100)
+    o = np.flatnonzero(keep)
+    w = np.linalg.solve(C[np.ix_(o, o)], C[o, 50])
+    q = s.suspects[0]
+    assert_allclose(q.predicted, gp.x[50] + w @ (gp.y[o] - gp.x[o]), rtol=1e-9)
+    assert_allclose(q.std, np.sqrt(C[50, 50] - C[50, o] @ w), rtol=1e-6)
+
+
+def test_given_hyperparameters_are_kept_in_the_refits():
+    tr = _trial(3)
+    x, y = tr.d2
+    bad = y.copy()
+    bad[20] += 3e-3
+    hp = {"length_scale": 0.2, "variance": 1e-4, "noise_variance": 2e-8}
+    s = screen(fit_gp(x, bad, hyperparameters=hp))
+    assert [q.index for q in s.suspects] == [20]
+    assert s.noise_std == s.noise_std_without == np.sqrt(2e-8)
+    kern = SquaredExp(0.2, 1e-4)
+    keep = np.arange(x.size) != 20
+    Kt = kern(x) + 2e-8 * np.eye(x.size)
+    w = np.linalg.solve(Kt[np.ix_(keep, keep)], Kt[keep, 20])
+    assert_allclose(s.suspects[0].predicted, x[20] + w @ (bad[keep] - x[keep]), rtol=1e-9)
+
+
+def test_a_stage_with_more_outliers_than_its_share_stops_there_and_says_so():
+    rng = np.random.default_rng(5)
+    x = np.linspace(0.0, 1.0, 60)
+    y = x + 0.01 * np.sin(5 * x) + rng.normal(0.0, 1e-4, 60)
+    y[3::7] += 1e-2 * 0.6 ** np.arange(9) * rng.choice([-1, 1], 9)  # 100 down to 1.7 sd
+    s = screen(fit_gp(x, y), max_fraction=0.05)
+    assert s.capped and [q.index for q in s.suspects] == [3, 10, 17]
+    assert all(abs(q.z) > s.threshold for q in s.suspects)
+
+
+@pytest.mark.parametrize("level", [0.0, 1.0, -0.1, float("nan")])
+def test_level_must_be_a_probability(level):
+    tr = _trial(0)
+    with pytest.raises(ValueError, match="level"):
+        screen(fit_gp(*tr.d2), level=level)
