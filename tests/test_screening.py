@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.stats import f as f_dist
 from scipy.stats import norm
 
 from cascal.cascade import Cascade, Stage
@@ -13,7 +14,7 @@ from cascal.gp import fit_gp
 from cascal.kernels import SquaredExp
 from cascal.montecarlo import trial_rng
 from cascal.noise import Dense
-from cascal.screening import loo_residuals, screen, threshold
+from cascal.screening import loo_residuals, screen, screen_repeats, threshold
 from cascal.simulation import simulate_trial
 from utils import assert_allclose, se
 
@@ -169,3 +170,52 @@ def test_level_must_be_a_probability(level):
     tr = _trial(0)
     with pytest.raises(ValueError, match="level"):
         screen(fit_gp(*tr.d2), level=level)
+
+
+def _repeats(rng, positions=40, c=3, sd=1e-4):
+    x = np.repeat(np.linspace(0.0, 1.0, positions), c)
+    return x, x + 1e-3 * np.sin(4 * x) + rng.normal(0.0, sd, x.size)
+
+
+def test_repeats_clean_give_rare_alarms():
+    alarms = sum(bool(screen_repeats(*_repeats(np.random.default_rng(s)))) for s in range(300))
+    assert alarms <= 9  # 300 files at 1 %: 3 expected
+
+
+def test_one_bad_reading_among_repeats_is_found_with_the_f_test_written_out():
+    rng = np.random.default_rng(1)
+    x, y = _repeats(rng)
+    y[31] += 2e-3  # position 10, its second reading
+    (s,) = screen_repeats(x, y)
+    assert list(s.members) == [30, 31, 32] and s.farthest == 31 and s.reading == x[31]
+    groups = y.reshape(40, 3)
+    var = groups.var(axis=1, ddof=1)
+    pooled = np.mean(np.delete(var, 10))  # equal sizes: the mean of the other variances
+    assert_allclose(s.ratio, np.sqrt(var[10] / pooled), rtol=1e-9)
+    assert_allclose(s.p, f_dist.sf(var[10] / pooled, 2, 78), rtol=1e-6)
+    assert s.p < 0.01 / 40
+
+
+def test_backward_deletion_of_repeats_and_pairs():
+    rng = np.random.default_rng(2)
+    x, y = _repeats(rng, positions=30, c=2)
+    y[[8, 21]] += [3e-3, -1e-3]  # two pairs disagree, one far more than the other
+    found = screen_repeats(x, y)
+    assert [list(s.members) for s in found] == [[8, 9], [20, 21]]
+    var = y.reshape(30, 2).var(axis=1, ddof=1)
+    pooled = np.mean(np.delete(var, [4, 10]))  # the worst has left the pool
+    assert_allclose(found[1].ratio, np.sqrt(var[10] / pooled), rtol=1e-9)
+    # Shuffled rows give the same positions, their readings found where they went.
+    order = rng.permutation(x.size)
+    again = screen_repeats(x[order], y[order])
+    assert [sorted(order[s.members]) for s in again] == [[8, 9], [20, 21]]
+    assert [s.p for s in again] == pytest.approx([s.p for s in found], rel=1e-12)
+
+
+def test_repeats_without_a_spread_to_compare_are_not_judged():
+    x = np.repeat([0.0, 1.0, 2.0, 3.0], 2)
+    y = x.copy()
+    y[1] += 1e-3  # every other position reads identically: nothing to compare with
+    assert screen_repeats(x, y) == ()
+    assert screen_repeats(np.arange(5.0), np.arange(5.0)) == ()  # no repeats
+    assert screen_repeats(np.r_[0.0, 0.0, 1.0], np.r_[0.0, 1.0, 1.0]) == ()  # one position

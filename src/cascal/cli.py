@@ -143,14 +143,17 @@ def _negative_value(text: str) -> bool:
 
 def _cmd_fit(args: argparse.Namespace) -> int:
     """Fit stage files (reference end first) and write a model file."""
+    from .cli_screening import report_screening
     from .io.modelfile import save_model
-    from .workflow import fit_model
+    from .workflow import fit_model, screen_stages
 
     check_output(args.output, inputs=args.stages)
     data = _read_stages(args.stages, args)
     model = fit_model(data, **_fit_kwargs(args))
+    checks = screen_stages(model, data)
     path = save_model(args.output, model)
     _print_model(model)
+    report_screening("fit", checks, model.unit)
     print(f"Model written to {path}")
     return 0
 
@@ -205,9 +208,10 @@ def _cmd_correct(args: argparse.Namespace) -> int:
 
 def _cmd_fit_devices(args: argparse.Namespace) -> int:
     """Fit the test bed once, then every device file in a folder against it, in parallel."""
+    from .cli_screening import report_screening, screening_lines
     from .io.atomic import write_text
     from .io.modelfile import save_model
-    from .workflow import fit_devices, fit_model
+    from .workflow import fit_devices, fit_model, screen_stages
 
     check_output(args.output, folder=True)
     folder = Path(args.devices)
@@ -216,8 +220,11 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         raise InputError(f"no *.csv device files in folder {folder}")
     (testbed,) = _read_stages([args.testbed], args)
     out = Path(args.output)
-    tb_model = save_model(out / "testbed.json", fit_model([testbed], **_fit_kwargs(args)))
+    tb = fit_model([testbed], **_fit_kwargs(args))
+    checks = screen_stages(tb, [testbed])
+    tb_model = save_model(out / "testbed.json", tb)
     print(f"Test bed fitted once: {tb_model}")
+    report_screening("fit-devices", checks, tb.unit)
     options = dict(_fit_kwargs(args), x_column=_one(args.x_column), y_column=_one(args.y_column))
 
     t0, done = time.perf_counter(), [0]
@@ -230,11 +237,15 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         if r.error:
             warn("fit-devices", f"{where} skipped device {r.device}: {r.error}")
         else:
+            n_rows = len(r.screening.rows) if r.screening else 0
+            suspect = f", {n_rows} suspect row{'s' * (n_rows > 1)}" if n_rows else ""
             print(
                 f"  {where} {r.device}: rms correction {r.rms_correction:.4g}, "
-                f"largest u {r.max_u:.4g}",
+                f"largest u {r.max_u:.4g}{suspect}",
                 flush=True,
             )
+            for line in screening_lines(r.screening, tb.unit) if r.screening else ():
+                warn("fit-devices", line)
 
     jobs = args.jobs or os.cpu_count() or 1
     results = fit_devices(
@@ -343,6 +354,7 @@ def _fleet_csv(results) -> str:
             "max_u",
             "range_lo",
             "range_hi",
+            "suspect_rows",
             "model",
             "error",
         ]
@@ -358,6 +370,7 @@ def _fleet_csv(results) -> str:
                 r.points or "",
                 *hp,
                 *cells,
+                " ".join(map(str, r.screening.rows)) if r.screening else "",
                 r.model or "",
                 r.error or "",
             ]

@@ -9,6 +9,11 @@ family-wise false-alarm probability ``level`` for the stage. The worst suspect i
 out, the stage refitted (hyperparameters learned again) and the rest screened again, until
 no point exceeds the threshold. Each suspect is finally judged against the fit without all
 of them, where it no longer inflates the noise it is measured by.
+
+A single bad reading among repeats at one position hides from that screening: it inflates
+its own point's known noise. :func:`screen_repeats` compares the spread of each position's
+repeats with the pooled spread of the other positions' (an F test, as in Cochran's test of
+ISO 5725-2), again by backward deletion.
 """
 
 from __future__ import annotations
@@ -18,13 +23,22 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.special import ndtri
+from scipy.stats import f as f_dist
 
 from .errors import InputError
 from .gp import FittedGP, fit_gp
 from .linalg import inverse_from_cholesky
 from .noise import Dense, Diagonal, Noise
 
-__all__ = ["Screening", "Suspect", "loo_residuals", "screen", "threshold"]
+__all__ = [
+    "Screening",
+    "Spread",
+    "Suspect",
+    "loo_residuals",
+    "screen",
+    "screen_repeats",
+    "threshold",
+]
 
 #: Default family-wise false-alarm probability per stage.
 LEVEL = 0.01
@@ -195,3 +209,85 @@ def _judge(gp: FittedGP, fit: FittedGP, keep: np.ndarray, found: list[int]) -> t
         Suspect(int(i), float(x), float(v), float(m), float(s), float((v - m) / s))
         for i, x, v, m, s in zip(idx, xs, y, mean, sd, strict=True)
     )
+
+
+@dataclass(frozen=True, slots=True)
+class Spread:
+    """A position whose repeated readings scatter more than the other positions' repeats.
+
+    Attributes:
+        members: Indices of its readings in the input, shape (c,).
+        reading: The repeated reading of the sensor being calibrated.
+        farthest: Index (in the input) of the reading farthest from the mean of the others.
+        ratio: Its sample standard deviation over the pooled one of the other positions.
+        p: Probability of a ratio this large or larger when all spreads are equal (F test).
+    """
+
+    members: np.ndarray
+    reading: float
+    farthest: int
+    ratio: float
+    p: float
+
+
+def screen_repeats(
+    x: np.ndarray, y: np.ndarray, *, level: float = LEVEL, max_fraction: float = MAX_FRACTION
+) -> tuple[Spread, ...]:
+    """Positions read more than once whose readings scatter too much, worst first.
+
+    Each position's sample variance is compared with the pooled variance of the other
+    positions' repeats still in the pool (F distribution); a position is suspect where the
+    probability is below ``level`` divided by the number of repeated positions. The worst
+    leaves the pool and the rest are compared again. Positions whose pool has no spread
+    (identical repeats everywhere else, e.g. a coarse resolution) are not judged.
+
+    Args:
+        x: Readings of the sensor being calibrated, shape (n,); repeats are exactly equal.
+        y: Readings of the more accurate sensor, shape (n,).
+        level: Family-wise false-alarm probability of each round (default 1 %).
+        max_fraction: Stop after this share of the repeated positions (at least one).
+    """
+    if not 0.0 < level < 1.0:
+        raise InputError(f"level: expected a probability in (0, 1), got {level!r}")
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    ux, inverse, counts = np.unique(x, return_inverse=True, return_counts=True)
+    mean = np.bincount(inverse, weights=y, minlength=ux.size) / counts
+    ss = np.bincount(inverse, weights=(y - mean[inverse]) ** 2, minlength=ux.size)
+    groups = np.flatnonzero(counts > 1)
+    if groups.size < 2:
+        return ()
+    df = counts[groups] - 1.0
+    ssg = ss[groups]
+    pool = np.ones(groups.size, bool)
+    found: list[Spread] = []
+    cap = max(1, int(max_fraction * groups.size))
+    while len(found) < cap:
+        df_rest = df[pool].sum() - df
+        ss_rest = ssg[pool].sum() - ssg
+        judged = pool & (df_rest > 0) & (ss_rest > 0)
+        if not np.any(judged):
+            break
+        ratio2 = np.where(judged, (ssg / df) / np.where(judged, ss_rest / df_rest, 1.0), 0.0)
+        p = np.where(judged, f_dist.sf(ratio2, df, np.maximum(df_rest, 1.0)), 1.0)
+        worst = int(np.argmin(p))
+        if not p[worst] < level / groups.size:
+            break
+        pool[worst] = False
+        members = np.flatnonzero(inverse == groups[worst])
+        found.append(
+            Spread(
+                members,
+                float(ux[groups[worst]]),
+                int(members[_farthest(y[members])]),
+                float(np.sqrt(ratio2[worst])),
+                float(p[worst]),
+            )
+        )
+    return tuple(found)
+
+
+def _farthest(v: np.ndarray) -> int:
+    """Index of the value of ``v`` (c,) farthest from the mean of the others."""
+    others = (v.sum() - v) / (v.size - 1)
+    return int(np.argmax(np.abs(v - others)))

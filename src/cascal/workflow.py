@@ -18,13 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .cascade import Cascade
+from .cascade import Cascade, stage_seed
 from .compensation import MAX_NODES, CompensationTable, compensation_table
 from .errors import CascalError, InputError
 from .gp import FittedGP
 from .io.data import StageData, read_stage
 from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
+from .screening import LEVEL, Screening, Spread, screen, screen_repeats
 from .tabulate import predict_many
 from .verification import COVERAGE_FACTOR, Verification, verify
 
@@ -33,11 +34,13 @@ __all__ = [
     "Correction",
     "DeviceResult",
     "MeasurementPlan",
+    "StageScreening",
     "compensation",
     "correct",
     "fit_devices",
     "fit_model",
     "plan_measurements",
+    "screen_stages",
     "summarize_device",
     "verify_model",
 ]
@@ -137,6 +140,64 @@ def fit_model(
         seed=seed,
         n_restarts=n_restarts,
     )
+
+
+@dataclass(frozen=True, slots=True)
+class StageScreening:
+    """Outlier screening of one stage file of a fit (see :mod:`cascal.screening`).
+
+    Attributes:
+        stage: Index of the stage in the model.
+        data: The stage file as read.
+        fit: Points its fit's other points do not support; None for a lookup table.
+        spread: Positions whose repeated readings scatter too much.
+    """
+
+    stage: int
+    data: StageData
+    fit: Screening | None
+    spread: tuple[Spread, ...]
+
+    @property
+    def rows(self) -> list[int]:
+        """File rows of every finding, increasing: all readings of a suspect point, the
+        farthest reading of a repeated position (both of a pair)."""
+        out: set[int] = set()
+        for q in self.fit.suspects if self.fit else ():
+            out.update(int(r) for r in self.data.point_rows(q.index))
+        raw_rows = self.data.raw_rows
+        for s in self.spread if raw_rows is not None else ():
+            pick = s.members if s.members.size == 2 else [s.farthest]
+            out.update(int(raw_rows[i]) for i in pick)
+        return sorted(out)
+
+
+def screen_stages(
+    model: CalibrationModel, stages: Sequence[StageData], *, level: float = LEVEL
+) -> list[StageScreening]:
+    """Screen the stage files a model was fitted from for outliers.
+
+    Args:
+        model: The fitted model; ``stages`` are its last ``len(stages)`` stages (a device
+            fitted on a test-bed prefix: the device's file alone).
+        stages: The files as read by :func:`~cascal.io.data.read_stage`.
+        level: Family-wise false-alarm probability per stage and check (default 1 %).
+    """
+    first = len(model.fitted.models) - len(stages)
+    if first < 0:
+        raise InputError(f"expected at most {len(model.fitted.models)} stage files")
+    out = []
+    for k, data in enumerate(stages, start=first):
+        gp = model.fitted.models[k]
+        fit = None
+        if isinstance(gp, FittedGP):
+            seed = stage_seed(model.seed, k)
+            fit = screen(gp, level=level, n_restarts=model.n_restarts, seed=seed)
+        spread = ()
+        if data.raw_x is not None and data.raw_y is not None:
+            spread = screen_repeats(data.raw_x, data.raw_y, level=level)
+        out.append(StageScreening(k, data, fit, spread))
+    return out
 
 
 def _check_inside(stage: StageData, upper_x: np.ndarray | None) -> None:
@@ -362,6 +423,7 @@ class DeviceResult:
         max_u: Largest standard uncertainty there (NaN for ``lut``).
         calibrated_range: Smallest and largest device reading calibrated.
         points: Points of the device stage (after averaging repeats).
+        screening: Outlier screening of the device's file, or None when skipped.
     """
 
     device: str
@@ -373,6 +435,7 @@ class DeviceResult:
     max_u: float = float("nan")
     calibrated_range: tuple[float, float] = (float("nan"), float("nan"))
     points: int = 0
+    screening: StageScreening | None = None
 
 
 def summarize_device(model: CalibrationModel) -> dict[str, object]:
@@ -454,6 +517,7 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
             if k in options
         }
         model = fit_model([data], prefix=prefix, **fit_opts)  # type: ignore[arg-type]
+        (check,) = screen_stages(model, [data])
         path = save_model(out, model)
         s = summarize_device(model)
     except (CascalError, OSError) as exc:
@@ -475,4 +539,5 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
         max_u=s["max_u"],  # type: ignore[arg-type]
         calibrated_range=model.calibrated_range,
         points=int(data.x.size),
+        screening=check,
     )

@@ -82,6 +82,9 @@ class StageData:
         counts: Readings averaged into each point, shape (k,).
         rows: File row of each point's first reading, shape (k,).
         source: The file's provenance.
+        raw_x, raw_y: Every reading as read (``raw_y`` moved by whole periods for a rotary
+            sensor), shape (n,), before averaging; None when not kept.
+        raw_rows: File row of each, shape (n,).
     """
 
     x: np.ndarray
@@ -90,6 +93,16 @@ class StageData:
     counts: np.ndarray
     rows: np.ndarray
     source: Source
+    raw_x: np.ndarray | None = None
+    raw_y: np.ndarray | None = None
+    raw_rows: np.ndarray | None = None
+
+    def point_rows(self, i: int) -> np.ndarray:
+        """File rows of the readings averaged into point ``i``, increasing; its first row
+        alone when the readings were not kept."""
+        if self.raw_x is None or self.raw_rows is None:
+            return self.rows[i : i + 1]
+        return np.sort(self.raw_rows[self.raw_x == self.x[i]])
 
     def stage(self, name: str) -> Stage:
         """The points as a :class:`~cascal.cascade.Stage` called ``name``."""
@@ -224,7 +237,7 @@ def read_stage(
             column=yn,
         )
     noise = rep.noise if np.any(rep.counts > 1) else None
-    return StageData(rep.x, rep.y, noise, rep.counts, rows, table.source)
+    return StageData(rep.x, rep.y, noise, rep.counts, rows, table.source, x, y, table.rows)
 
 
 def read_readings(path: str | os.PathLike, *, column: str | None = None) -> Table:
