@@ -1,0 +1,124 @@
+"""Outlier screening in ``cascal fit`` and ``fit-devices``: the rows named, the numbers."""
+
+from __future__ import annotations
+
+import csv
+import re
+
+import numpy as np
+import pytest
+from cli_helpers import run_cascal
+
+from cascal.io.data import read_stage
+from cascal.io.modelfile import load_model
+from cascal.screening import screen, screen_repeats
+from cascal.workflow import fit_model, screen_stages
+
+
+def _spoil(src, dst, changes: dict[int, float]) -> None:
+    """Copy a stage file, adding ``changes[row]`` to the second column of those file rows."""
+    lines = src.read_text().splitlines()
+    for row, delta in changes.items():
+        x, y = lines[row - 1].split(",")
+        lines[row - 1] = f"{x},{float(y) + delta!r}"
+    dst.write_text("\n".join(lines) + "\n")
+
+
+@pytest.fixture(scope="module")
+def spoiled(linear_files, tmp_path_factory):
+    """The linear case with one reference reading of a repeated position 10 noise standard
+    deviations off (file row 41) and one test-bed value of the device file off (row 101)."""
+    (ref, dev), _ = linear_files
+    tmp = tmp_path_factory.mktemp("spoiled")
+    bad_ref, bad_dev = tmp / "reference_testbed.csv", tmp / "testbed_device.csv"
+    _spoil(ref, bad_ref, {41: 1e-3})
+    _spoil(dev, bad_dev, {101: 5e-4})
+    return tmp, bad_ref, bad_dev
+
+
+def test_clean_files_have_nothing_suspect(linear_files, tmp_path):
+    files, _ = linear_files
+    res = run_cascal("fit", *files, "-o", tmp_path / "m.json")
+    assert res.returncode == 0, res.stderr
+    assert "Outlier screening (1 % false-alarm level per stage and check): none found" in (
+        res.stdout
+    )
+    assert "warning" not in res.stderr
+
+
+def test_fit_names_the_rows_and_the_numbers_are_the_library_s(spoiled):
+    tmp, bad_ref, bad_dev = spoiled
+    res = run_cascal("fit", bad_ref, bad_dev, "-o", tmp / "m.json")
+    assert res.returncode == 0, res.stderr
+    assert "2 suspect rows, see the warnings" in res.stdout
+    warnings = res.stderr.strip().splitlines()
+    assert len(warnings) == 3, res.stderr
+    assert warnings[0].startswith(f"cascal fit: warning: {bad_ref} row 41: reference ")
+    assert "is the farthest of the 3 readings at testbed" in warnings[0]
+    assert "(rows 41, 42 and 43)" in warnings[0]
+    assert warnings[1].startswith(f"cascal fit: warning: {bad_dev} row 101: testbed ")
+    assert warnings[2].startswith(f"cascal fit: warning: {bad_dev}: without the 1 suspect")
+    # The printed figures are the library's, on the model the command wrote.
+    model = load_model(tmp / "m.json")
+    ref_data = read_stage(bad_ref)
+    (spread,) = screen_repeats(ref_data.raw_x, ref_data.raw_y)
+    assert ref_data.raw_rows[spread.farthest] == 41
+    assert f"scatter {spread.ratio:.1f} times" in warnings[0]
+    assert f"(p = {spread.p:.2g})" in warnings[0]
+    device = screen(model.fitted.models[1], n_restarts=model.n_restarts)
+    (q,) = device.suspects
+    z = float(re.search(r"lies ([0-9.]+) standard deviations above", warnings[1]).group(1))
+    assert z == round(q.z, 1) and z > device.threshold
+    assert f"({q.target - q.predicted:+.3g} m)" in warnings[1]
+    assert (
+        f"would be {device.noise_std_without:.3g} m instead of {device.noise_std:.3g}"
+        in (warnings[2])
+    )
+
+
+def test_screen_stages_maps_points_to_file_rows(spoiled):
+    _, bad_ref, bad_dev = spoiled
+    data = [read_stage(bad_ref), read_stage(bad_dev)]
+    model = fit_model(data)
+    checks = screen_stages(model, data)
+    assert [c.rows for c in checks] == [[41], [101]]
+    assert [c.stage for c in checks] == [0, 1]
+    # A suspect averaged point names all of its rows.
+    ref = data[0]
+    i = int(np.flatnonzero(ref.counts == 3)[5])
+    rows = ref.point_rows(i)
+    assert rows.size == 3 and rows[0] == ref.rows[i]
+    assert np.all(ref.raw_x[np.isin(ref.raw_rows, rows)] == ref.x[i])
+    # A device fitted on a test-bed prefix: its file alone, as the model's stage 1.
+    prefix = fit_model(data[:1])
+    device = fit_model(data[1:], prefix=prefix)
+    (check,) = screen_stages(device, data[1:])
+    assert check.stage == 1 and check.rows == [101]
+    with pytest.raises(ValueError, match="at most 1 stage files"):
+        screen_stages(prefix, data)
+
+
+def test_lookup_tables_are_not_fitted_but_their_repeats_are_screened(spoiled):
+    _, bad_ref, bad_dev = spoiled
+    data = [read_stage(bad_ref), read_stage(bad_dev)]
+    checks = screen_stages(fit_model(data, method="lut"), data)
+    assert [c.fit for c in checks] == [None, None]
+    assert [c.rows for c in checks] == [[41], []]
+
+
+def test_fleet_summary_lists_suspect_rows(spoiled, linear_files):
+    tmp, bad_ref, bad_dev = spoiled
+    (_, good_dev), _ = linear_files
+    folder = tmp / "devices"
+    folder.mkdir()
+    (folder / "a.csv").write_text(good_dev.read_text())
+    (folder / "b.csv").write_text(bad_dev.read_text())
+    res = run_cascal("fit-devices", bad_ref, "--devices", folder, "-o", tmp / "fleet")
+    assert res.returncode == 0, res.stderr
+    assert re.search(r"\] b: rms correction .*, 1 suspect row\n", res.stdout)
+    assert re.search(r"\] a: rms correction [^,]*, largest u [0-9.e+-]+\n", res.stdout)
+    assert f"fit-devices: warning: {bad_ref} row 41:" in res.stderr
+    assert f"fit-devices: warning: {folder / 'b.csv'} row 101:" in res.stderr
+    with open(tmp / "fleet" / "fleet_summary.csv", newline="") as fh:
+        rows = {r["device"]: r for r in csv.DictReader(fh)}
+    assert rows["a"]["suspect_rows"] == "" and rows["b"]["suspect_rows"] == "101"
