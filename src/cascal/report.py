@@ -21,6 +21,7 @@ from .gp import Z95
 from .io.modelfile import CalibrationModel
 from .plots import plot_plan, plot_verification
 from .reportdata import CurveView, StageView, correction_curve, stage_views
+from .screening import LEVEL, Screening
 from .verification import Verification
 from .workflow import MeasurementPlan, plan_measurements
 
@@ -88,6 +89,12 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
         rx.plot(xb, -b, color="C2", lw=0.8)
     rx.axhline(0.0, color="0.3", lw=0.8)
     rx.plot(view.x, view.residuals * fr, ".", color="C3", ms=4, label="residual (target - fit)")
+    sus = [q.index for q in view.screening.suspects] if view.screening else []
+    if sus:
+        rx.plot(
+            view.x[sus], view.residuals[sus] * fr, "o", mfc="none", mec="k", ms=9, mew=1.2,
+            label="suspect (outlier screening)",
+        )  # fmt: skip
     _shade(rx, view.gaps, period, None)
     rx.set_ylabel(f"about the fit [{sr}]")
     rx.set_xlabel(f"reading [{unit}]")
@@ -215,6 +222,8 @@ def build_report(
             parts.append(_table(["hyperparameter", "value"], rows))
         else:
             parts.append("<p>Lookup table: linear interpolation, no uncertainty.</p>")
+        if view.screening is not None:
+            parts.append(_screening_html(view.screening, unit))
         if view.gaps:
             text = ", ".join(f"[{_num(a)}, {_num(b)}]" for a, b in view.gaps)
             parts.append(
@@ -242,6 +251,33 @@ def build_report(
     return (
         '<!doctype html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>{e(title)}</title><style>{_CSS}</style></head>\n<body>\n{body}\n</body></html>\n"
+    )
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'s' * (n != 1)}"
+
+
+def _screening_html(s: Screening, unit: str) -> str:
+    """The stage's outlier screening: a sentence, and a table of the suspects."""
+    level = f"{LEVEL * 100:g} %"
+    if not s.suspects:
+        return (
+            f"<p>Outlier screening: every point agrees with the others (leave-one-out, |z| "
+            f"below {s.threshold:.2f}, the {level} false-alarm level of the stage).</p>"
+        )
+    rows = [
+        (_num(q.reading), _num(q.target), _num(q.predicted), _num(q.std), f"{q.z:+.1f}")
+        for q in s.suspects
+    ]
+    head = [f"reading [{unit}]", f"target [{unit}]", "predicted by the others", "u", "z"]
+    cap = " More than a tenth of the points disagree: the model is in doubt." if s.capped else ""
+    return (
+        f"<p class='warn'>Outlier screening: {_count(len(s.suspects), 'point')} the others do not "
+        f"support (|z| above {s.threshold:.2f}, the {level} false-alarm level of the stage; "
+        f"circled in the residuals). Without them the learned noise would be "
+        f"{_num(s.noise_std_without)} {html.escape(unit)} instead of {_num(s.noise_std)}: "
+        f"check those measurements.{cap}</p>" + _table(head, rows)
     )
 
 
@@ -303,6 +339,7 @@ _CSS = (
     "body{font-family:sans-serif;max-width:60em;margin:2em auto;color:#222}"
     "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;"
     "font-size:90%;text-align:left}img{max-width:100%;display:block;margin:0.5em 0}"
+    ".warn{color:#a33}"
 )
 
 

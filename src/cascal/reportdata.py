@@ -3,8 +3,9 @@
 Per stage: the data, the fit with its 95 % band on a grid, residuals with the spread the fit
 expected of them, the hyperparameters, and the stretches where the reference could not
 measure (gaps in stage 0's readings wider than ``GAP_FACTOR`` times their median spacing,
-carried down to each stage's readings through the stages' data). Then the final correction
-curve with its uncertainty.
+carried down to each stage's readings through the stages' data), and the points the other
+points do not support (:mod:`cascal.screening`). Then the final correction curve with its
+uncertainty.
 """
 
 from __future__ import annotations
@@ -13,9 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .cascade import stage_seed
 from .gp import Z95, FittedGP
 from .io.modelfile import CalibrationModel
 from .planning import GAP_FACTOR, find_gaps
+from .screening import Screening, screen
 from .workflow import correct
 
 __all__ = [
@@ -52,6 +55,8 @@ class StageView:
         hyperparameters: By name, natural units (empty for lut).
         gaps: Stretches of ``x`` where the reference could not measure, list of (lo, hi).
         log_marginal_likelihood: Of the fitted GP, or None.
+        screening: Outlier screening of the GP's points (:func:`cascal.screening.screen`),
+            or None (lut).
     """
 
     name: str
@@ -68,6 +73,7 @@ class StageView:
     hyperparameters: dict[str, float]
     gaps: list[tuple[float, float]]
     log_marginal_likelihood: float | None
+    screening: Screening | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -145,6 +151,7 @@ def stage_views(model: CalibrationModel) -> list[StageView]:
                 residual_band=Z95 * np.sqrt(np.clip(known + m.noise_variance, 0.0, None)),
                 hyperparameters=m.hyperparameters,
                 log_marginal_likelihood=m.log_marginal_likelihood,
+                screening=screen(m, n_restarts=model.n_restarts, seed=stage_seed(model.seed, k)),
             )
         else:
             extra = dict(

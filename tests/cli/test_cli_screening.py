@@ -122,3 +122,26 @@ def test_fleet_summary_lists_suspect_rows(spoiled, linear_files):
     with open(tmp / "fleet" / "fleet_summary.csv", newline="") as fh:
         rows = {r["device"]: r for r in csv.DictReader(fh)}
     assert rows["a"]["suspect_rows"] == "" and rows["b"]["suspect_rows"] == "101"
+
+
+def test_report_lists_the_suspects_and_circles_them(spoiled, linear_model):
+    from cascal.report import build_report
+    from cascal.reportdata import stage_views
+
+    tmp, bad_ref, bad_dev = spoiled
+    model = fit_model([read_stage(bad_ref), read_stage(bad_dev)])
+    views = stage_views(model)
+    (q,) = views[1].screening.suspects
+    assert views[0].screening.suspects == ()  # the bad repeat hides in its own point
+    text = build_report(model)
+    assert text.count("Outlier screening: every point agrees with the others") == 1
+    assert "Outlier screening: 1 point the others do not support" in text
+    assert f"<td>{q.z:+.1f}</td>" in text and f"<td>{q.reading:.6g}</td>" in text
+    clean = build_report(load_model(linear_model))
+    assert clean.count("Outlier screening: every point agrees with the others") == 2
+    # The figure circles the suspect at its residual.
+    from cascal.report import stage_figure
+
+    fig = stage_figure(views[1], unit="m")
+    ring = [ln for ln in fig.axes[1].lines if ln.get_label() == "suspect (outlier screening)"]
+    assert len(ring) == 1 and list(ring[0].get_xdata()) == [q.reading]
