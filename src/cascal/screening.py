@@ -21,13 +21,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import solve_triangular
+from scipy.linalg import lapack, solve_triangular
 from scipy.special import ndtri
 from scipy.stats import f as f_dist
 
-from .errors import InputError
+from .errors import InputError, NumericalError
 from .gp import FittedGP, fit_gp
-from .linalg import inverse_from_cholesky
 from .noise import Dense, Diagonal, Noise
 
 __all__ = [
@@ -103,7 +102,10 @@ def loo_residuals(gp: FittedGP) -> tuple[np.ndarray, np.ndarray]:
     ``std_i = [Kt^-1]_ii^-1/2``, Kt the target covariance (kernel, known and learned
     noise) of the fit; hyperparameters held at their fitted values.
     """
-    d = np.diagonal(inverse_from_cholesky(gp.L))
+    Linv, info = lapack.dtrtri(gp.L, lower=1)
+    if info != 0:
+        raise NumericalError(f"triangular inverse failed (info={info})")
+    d = np.einsum("ij,ij->j", Linv, Linv)  # [Kt^-1]_ii = column norms of L^-1, squared
     return gp.alpha / d, 1.0 / np.sqrt(d)
 
 

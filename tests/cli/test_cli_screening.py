@@ -128,7 +128,7 @@ def test_report_lists_the_suspects_and_circles_them(spoiled, linear_model):
     from cascal.report import build_report
     from cascal.reportdata import stage_views
 
-    tmp, bad_ref, bad_dev = spoiled
+    _, bad_ref, bad_dev = spoiled
     model = fit_model([read_stage(bad_ref), read_stage(bad_dev)])
     views = stage_views(model)
     (q,) = views[1].screening.suspects
