@@ -57,9 +57,9 @@ def screening_lines(check: StageScreening, unit: str) -> list[str]:
         )
     if fit and fit.capped:
         lines.append(
-            f"{file}: more than {MAX_FRACTION:.0%} of its points disagree with the others: its "
-            "noise may not be Gaussian, or the map may be rougher than the kernel allows "
-            "(see the residuals in cascal report)"
+            f"{file}: more points disagree with the others than the screening takes out (at "
+            f"most {MAX_FRACTION:.0%} of them): its noise may not be Gaussian, or the map may "
+            "be rougher than the kernel allows (see the residuals in cascal report)"
         )
     return lines
 

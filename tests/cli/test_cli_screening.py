@@ -145,3 +145,25 @@ def test_report_lists_the_suspects_and_circles_them(spoiled, linear_model):
     fig = stage_figure(views[1], unit="m")
     ring = [ln for ln in fig.axes[1].lines if ln.get_label() == "suspect (outlier screening)"]
     assert len(ring) == 1 and list(ring[0].get_xdata()) == [q.reading]
+
+
+def test_fit_says_when_more_points_disagree_than_it_takes_out(tmp_path):
+    rng = np.random.default_rng(5)
+    x = np.linspace(0.0, 1.0, 60)
+    y = x + 0.01 * np.sin(5 * x) + rng.normal(0.0, 1e-4, 60)
+    y[3::5] += 1e-2 * 0.7 ** np.arange(12)  # 100 down to 2 noise standard deviations
+    stage = tmp_path / "stage.csv"
+    cells = "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(x, y, strict=True))
+    stage.write_text("reading,reference\n" + cells)
+    res = run_cascal("fit", stage, "-o", tmp_path / "m.json")
+    assert res.returncode == 0, res.stderr
+    lines = res.stderr.strip().splitlines()
+    rows = [int(m) for m in re.findall(r"stage\.csv row (\d+): reference", res.stderr)]
+    assert rows == [5, 10, 15, 20, 25, 30]  # file rows of the six largest, worst first
+    assert "without the 6 suspect points its learned noise" in lines[-2]
+    assert lines[-1].endswith(
+        "more points disagree with the others than the screening takes out (at most 10% of "
+        "them): its noise may not be Gaussian, or the map may be rougher than the kernel "
+        "allows (see the residuals in cascal report)"
+    )
+    assert "6 suspect rows" in res.stdout
