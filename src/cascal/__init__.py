@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from . import kernels, noise, planning, simulation
+from . import kernels, noise, planning, screening, simulation
 from ._version import __version__
 from .baselines import OffsetTable, fit_table
 from .cascade import Cascade, FittedCascade, Stage
@@ -46,5 +46,6 @@ __all__ = [
     "planning",
     "run_study",
     "save_model",
+    "screening",
     "simulation",
 ]

@@ -68,6 +68,8 @@ def screening_summary(checks: list[StageScreening]) -> str:
     """One line: what was screened and how many rows are suspect."""
     rows = sum(len(c.rows) for c in checks)
     found = f"{rows} suspect row{'s' * (rows != 1)}, see the warnings" if rows else "none found"
+    if not rows and any(c.fit and c.fit.capped for c in checks):
+        found = "no single suspect row, but see the warning"
     return f"Outlier screening ({LEVEL * 100:g} % false-alarm level per stage and check): {found}"
 
 
