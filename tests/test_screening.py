@@ -14,9 +14,9 @@ from cascal.gp import fit_gp
 from cascal.kernels import SquaredExp
 from cascal.montecarlo import trial_rng
 from cascal.noise import Dense
-from cascal.screening import loo_residuals, screen, screen_repeats, threshold
+from cascal.screening import loo_residuals, min_points, screen, screen_repeats, threshold
 from cascal.simulation import simulate_trial
-from utils import assert_allclose, se
+from utils import assert_allclose, dense_lml, se
 
 
 def _conditional(Kt: np.ndarray, r: np.ndarray, i: int) -> tuple[float, float]:
@@ -88,9 +88,20 @@ def test_backward_deletion_finds_two_neighbouring_outliers_the_first_fit_hides()
     assert np.sqrt(gp.noise_variance) > 2 * np.sqrt(clean.noise_variance)
     assert abs(s.z[30]) < s.threshold
     # ... without them the noise is the clean fit's (the other 62 points decide it).
-    assert s.noise_std == np.sqrt(gp.noise_variance)
     assert abs(s.noise_std_without / np.sqrt(clean.noise_variance) - 1) < 0.2
     assert not s.capped
+
+
+def _assert_noise_maximises(Kt_without_noise: np.ndarray, r: np.ndarray, sn2: float) -> None:
+    """``sn2`` maximises the dense log marginal likelihood (slogdet, solve) in log sn2."""
+    n = len(r)
+
+    def lml(t: float) -> float:
+        return dense_lml(r, Kt_without_noise + np.exp(t) * np.eye(n))
+
+    t, h = np.log(sn2), 1e-3
+    assert abs(lml(t + h) - lml(t - h)) / (2 * h) < 1e-3  # stationary (nats per e-fold)
+    assert lml(t) >= max(lml(t + 0.05), lml(t - 0.05))
 
 
 def test_a_suspect_is_judged_against_the_fit_without_every_suspect():
@@ -98,15 +109,19 @@ def test_a_suspect_is_judged_against_the_fit_without_every_suspect():
     x, y = tr.d2
     bad = y.copy()
     bad[[10, 40]] += [2e-3, -3e-3]
-    s = screen(fit_gp(x, bad))
+    gp = fit_gp(x, bad)
+    s = screen(gp)
+    assert sorted(q.index for q in s.suspects) == [10, 40]
     keep = np.ones(x.size, bool)
     keep[[10, 40]] = False
-    without = fit_gp(x[keep], bad[keep])
-    assert s.noise_std_without == np.sqrt(without.noise_variance)
-    k = without.kernel
+    k = gp.kernel  # held; the noise re-learned without the suspects
     ell, var = k.params["length_scale"], k.params["variance"]
+    sn2 = s.noise_std_without**2
+    _assert_noise_maximises(se(x[keep], x[keep], ell, var), bad[keep] - x[keep], sn2)
+    # Holding the kernel costs little: a full refit without them learns nearly the same.
+    assert abs(np.sqrt(fit_gp(x[keep], bad[keep]).noise_variance) / s.noise_std_without - 1) < 0.01
     xs = np.r_[x[keep], x[[10, 40]]]
-    Kt = se(xs, xs, ell, var) + without.noise_variance * np.eye(xs.size)
+    Kt = se(xs, xs, ell, var) + sn2 * np.eye(xs.size)
     r = bad[np.r_[np.flatnonzero(keep), [10, 40]]] - xs
     for q in s.suspects:
         j = keep.sum() + [10, 40].index(q.index)
@@ -127,12 +142,13 @@ def test_dense_noise_stage_refits_with_the_kept_rows_and_columns():
     s = screen(gp)
     assert [q.index for q in s.suspects] == [50]
     keep = np.arange(100) != 50
-    Sigma = gp.noise.dense(100)
-    without = fit_gp(gp.x[keep], gp.y[keep], noise=Sigma[np.ix_(keep, keep)], learn_noise=True)
-    assert_allclose(s.noise_std_without, np.sqrt(without.noise_variance), rtol=1e-9)
-    # The correlated noise between the suspect and the rest enters its prediction.
-    C = without.kernel(gp.x) + Sigma + without.noise_variance * np.eye(100)
     o = np.flatnonzero(keep)
+    Sigma = gp.noise.dense(100)
+    K = gp.kernel(gp.x) + Sigma
+    sn2 = s.noise_std_without**2
+    _assert_noise_maximises(K[np.ix_(o, o)], gp.y[o] - gp.x[o], sn2)
+    # The correlated noise between the suspect and the rest enters its prediction.
+    C = K + sn2 * np.eye(100)
     w = np.linalg.solve(C[np.ix_(o, o)], C[o, 50])
     q = s.suspects[0]
     assert_allclose(q.predicted, gp.x[50] + w @ (gp.y[o] - gp.x[o]), rtol=1e-9)
@@ -219,3 +235,43 @@ def test_repeats_without_a_spread_to_compare_are_not_judged():
     assert screen_repeats(x, y) == ()
     assert screen_repeats(np.arange(5.0), np.arange(5.0)) == ()  # no repeats
     assert screen_repeats(np.r_[0.0, 0.0, 1.0], np.r_[0.0, 1.0, 1.0]) == ()  # one position
+
+
+def test_a_learned_noise_covers_one_point_below_min_points():
+    """At the likelihood's maximum no |z| exceeds sqrt(n) (the learned noise grows with the
+    worst point), so below min_points nothing can be found, however gross."""
+    for level, expected in ((0.01, 12), (0.05, 8)):
+        n = next(n for n in range(2, 100) if np.sqrt(n) > norm.isf(level / (2 * n)))
+        assert min_points(level) == n == expected
+    for n in (8, 11, 12, 20):
+        x = np.linspace(0.0, 1.0, n)
+        y = x + 0.01 * np.sin(5 * x) + np.random.default_rng(n).normal(0.0, 1e-4, n)
+        y[n // 2] += 0.1  # a thousand noise standard deviations
+        s = screen(fit_gp(x, y))
+        assert np.max(np.abs(s.z)) <= np.sqrt(n)
+        assert s.detectable == (n >= 12)
+        assert [q.index for q in s.suspects] == ([n // 2] if n >= 12 else [])
+    given = fit_gp(
+        x, y, hyperparameters={"length_scale": 0.3, "variance": 1e-4, "noise_variance": 1e-8}
+    )
+    assert screen(given).detectable  # a given noise does not grow
+
+
+def test_repeats_of_unequal_counts_pool_by_degrees_of_freedom_and_stop_at_the_cap():
+    rng = np.random.default_rng(4)
+    counts = rng.integers(2, 6, 30)
+    x = np.repeat(np.arange(30.0), counts)
+    y = x + rng.normal(0.0, 1.0, x.size)
+    first = np.r_[0, np.cumsum(counts)[:-1]]
+    y[first[7]] += 12.0
+    (s,) = screen_repeats(x, y)
+    assert s.reading == 7.0 and s.farthest == first[7]
+    groups = [y[x == k] for k in range(30)]
+    ss = np.array([np.sum((g - g.mean()) ** 2) for g in groups])
+    df = counts - 1.0
+    pooled = (ss.sum() - ss[7]) / (df.sum() - df[7])
+    assert_allclose(s.ratio, np.sqrt(ss[7] / df[7] / pooled), rtol=1e-9)
+    assert_allclose(s.p, f_dist.sf(ss[7] / df[7] / pooled, df[7], df.sum() - df[7]), rtol=1e-6)
+    y[first[[3, 12, 20, 25]]] += [30.0, 25.0, 20.0, 15.0]
+    found = screen_repeats(x, y, max_fraction=0.1)  # 3 of the 30 positions at most
+    assert [f.reading for f in found] == [3.0, 12.0, 20.0]

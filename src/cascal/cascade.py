@@ -25,7 +25,7 @@ from .kernels import Kernel
 from .noise import Dense, Noise, as_noise
 from .validation import as_positions, check_increasing, check_pair
 
-__all__ = ["METHODS", "Cascade", "FittedCascade", "Stage", "stage_seed"]
+__all__ = ["METHODS", "Cascade", "FittedCascade", "Stage"]
 
 METHODS = ("bayes", "homoscedastic", "lut")
 
@@ -178,7 +178,7 @@ class Cascade:
                 noise=noise,
                 learn_noise=True,
                 n_restarts=self.n_restarts,
-                seed=stage_seed(self.seed, k),  # a generator only where starts are screened
+                seed=_stage_seed(self.seed, k),  # a generator only where starts are screened
                 period=self.period,
                 names=(f"{stage.name} x", f"{stage.name} y"),
             )
@@ -196,7 +196,7 @@ class Cascade:
         return FittedCascade("lut", tuple(tables), tuple(used))
 
 
-def stage_seed(seed: int | None, k: int) -> np.random.SeedSequence:
+def _stage_seed(seed: int | None, k: int) -> np.random.SeedSequence:
     """Stage ``k``'s stream: ``SeedSequence(seed).spawn(n)[k]`` without the parent."""
     return np.random.SeedSequence(seed, spawn_key=(k,))
 

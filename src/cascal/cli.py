@@ -150,10 +150,9 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     check_output(args.output, inputs=args.stages)
     data = _read_stages(args.stages, args)
     model = fit_model(data, **_fit_kwargs(args))
-    checks = screen_stages(model, data)
     path = save_model(args.output, model)
     _print_model(model)
-    report_screening("fit", checks, model.unit)
+    report_screening("fit", screen_stages(model, data), model.unit)
     print(f"Model written to {path}")
     return 0
 
@@ -224,7 +223,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     checks = screen_stages(tb, [testbed])
     tb_model = save_model(out / "testbed.json", tb)
     print(f"Test bed fitted once: {tb_model}")
-    report_screening("fit-devices", checks, tb.unit)
+    report_screening("fit-devices", checks, tb.unit, " of the test bed")
     options = dict(_fit_kwargs(args), x_column=_one(args.x_column), y_column=_one(args.y_column))
 
     t0, done = time.perf_counter(), [0]
@@ -253,6 +252,11 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     )
     summary = write_text(out / "fleet_summary.csv", _fleet_csv(results))
     n_bad = sum(r.error is not None for r in results)
+    n_sus = sum(bool(r.screening and r.screening.rows) for r in results)
+    print(
+        f"Outlier screening of the devices: {n_sus} of {len(results) - n_bad} with suspect "
+        "rows (column suspect_rows of the summary)"
+    )
     print(f"{len(results) - n_bad} of {len(results)} devices calibrated; summary: {summary}")
     return EXIT_FAILURE if n_bad else 0
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .screening import LEVEL, MAX_FRACTION
+from .screening import LEVEL, min_points
 from .workflow import StageScreening
 
 __all__ = ["report_screening", "screening_lines", "screening_summary"]
@@ -24,7 +24,8 @@ def screening_lines(check: StageScreening, unit: str) -> list[str]:
     lines = []
     for q in check.fit.suspects if check.fit else ():
         rows = data.point_rows(q.index)
-        mean = f" (the mean of {len(rows)} readings)" if len(rows) > 1 else ""
+        c = int(data.counts[q.index])
+        mean = f" (the mean of {c} readings)" if c > 1 else ""
         side = "above" if q.z > 0 else "below"
         lines.append(
             f"{file} {_rows(rows)}: {yn} {float(data.y[q.index]):.9g}{mean} at {xn} "
@@ -48,36 +49,51 @@ def screening_lines(check: StageScreening, unit: str) -> list[str]:
                 f"(p = {s.p:.2g}); check that measurement"
             )
     fit = check.fit
-    if fit and fit.suspects:
+    if fit and fit.suspects and fit.noise_std_without != fit.noise_std:
         k = len(fit.suspects)
+        which = f"the {k} suspect points" if k > 1 else "the suspect point"
         lines.append(
-            f"{file}: without the {k} suspect point{'s' * (k > 1)} its learned noise would be "
-            f"{fit.noise_std_without:.3g} {unit} instead of {fit.noise_std:.3g}; remove or "
-            f"re-measure {'them' if k > 1 else 'it'} and fit again"
+            f"{file}: without {which} its learned noise would be {fit.noise_std_without:.3g} "
+            f"{unit} instead of {fit.noise_std:.3g}; remove or re-measure "
+            f"{'them' if k > 1 else 'it'} and fit again"
         )
     if fit and fit.capped:
         lines.append(
             f"{file}: more points disagree with the others than the screening takes out (at "
-            f"most {MAX_FRACTION:.0%} of them): its noise may not be Gaussian, or the map may "
-            "be rougher than the kernel allows (see the residuals in cascal report)"
+            f"most {fit.cap} of its {fit.z.size}): its noise may not be Gaussian, or the map "
+            "may be rougher than the kernel allows (see the residuals in cascal report)"
+        )
+    if check.problem:
+        lines.append(f"{file}: the leave-one-out check stopped: {check.problem}")
+    if fit and not fit.detectable:
+        lines.append(
+            f"{file}: {fit.z.size} points are too few for the leave-one-out check to find an "
+            f"outlier (the noise it learns covers any single point; it needs "
+            f"{min_points(LEVEL)} or more)"
         )
     return lines
 
 
-def screening_summary(checks: list[StageScreening]) -> str:
-    """One line: what was screened and how many rows are suspect."""
+def screening_summary(checks: list[StageScreening], what: str = "") -> str:
+    """One line: what was screened (``what``, e.g. ``" of the test bed"``) and how many
+    rows are suspect."""
     rows = sum(len(c.rows) for c in checks)
     found = f"{rows} suspect row{'s' * (rows != 1)}, see the warnings" if rows else "none found"
-    if not rows and any(c.fit and c.fit.capped for c in checks):
-        found = "no single suspect row, but see the warning"
-    return f"Outlier screening ({LEVEL * 100:g} % false-alarm level per stage and check): {found}"
+    if not rows and any(c.fit and (c.fit.capped or not c.fit.detectable) for c in checks):
+        found = "no single suspect row, but see the warnings"
+    if any(c.problem for c in checks):
+        found = f"{found}; one check failed, see the warnings"
+    elif any(c.fit is None for c in checks):
+        found += " (lookup tables: repeated readings only)"
+    level = f"{LEVEL * 100:g} % false-alarm level per stage and check"
+    return f"Outlier screening{what} ({level}): {found}"
 
 
-def report_screening(command: str, checks: list[StageScreening], unit: str) -> None:
+def report_screening(command: str, checks: list[StageScreening], unit: str, what: str = "") -> None:
     """Print every finding as a warning of ``command``, then the summary line."""
     from .cli import warn
 
     for check in checks:
         for line in screening_lines(check, unit):
             warn(command, line)
-    print(screening_summary(checks))
+    print(screening_summary(checks, what))

@@ -223,7 +223,7 @@ def build_report(
         else:
             parts.append("<p>Lookup table: linear interpolation, no uncertainty.</p>")
         if view.screening is not None:
-            parts.append(_screening_html(view.screening, unit))
+            parts.append(_screening_html(view.screening, unit, bool(np.any(view.counts > 1))))
         if view.gaps:
             text = ", ".join(f"[{_num(a)}, {_num(b)}]" for a, b in view.gaps)
             parts.append(
@@ -258,26 +258,38 @@ def _count(n: int, noun: str) -> str:
     return f"{n} {noun}{'s' * (n != 1)}"
 
 
-def _screening_html(s: Screening, unit: str) -> str:
+def _screening_html(s: Screening, unit: str, repeats: bool) -> str:
     """The stage's outlier screening: a sentence, and a table of the suspects."""
     level = f"{LEVEL * 100:g} %"
+    also = " The spread of repeated readings is checked by cascal fit." if repeats else ""
+    if not s.detectable:
+        return (
+            f"<p>Outlier screening: {s.z.size} points are too few for the leave-one-out check "
+            f"to find an outlier at the {level} level.{also}</p>"
+        )
     if not s.suspects:
         return (
             f"<p>Outlier screening: every point agrees with the others (leave-one-out, |z| "
-            f"below {s.threshold:.2f}, the {level} false-alarm level of the stage).</p>"
+            f"below {s.threshold:.2f}, the {level} false-alarm level of the stage).{also}</p>"
         )
     rows = [
         (_num(q.reading), _num(q.target), _num(q.predicted), _num(q.std), f"{q.z:+.1f}")
         for q in s.suspects
     ]
     head = [f"reading [{unit}]", f"target [{unit}]", "predicted by the others", "u", "z"]
-    cap = " More than a tenth of the points disagree: the model is in doubt." if s.capped else ""
+    k = len(s.suspects)
+    cap = " More points disagree than the screening takes out: the model is in doubt."
+    noise = (
+        f" Without {'them' if k > 1 else 'it'} the learned noise would be "
+        f"{_num(s.noise_std_without)} {html.escape(unit)} instead of {_num(s.noise_std)}."
+        if s.noise_std_without != s.noise_std
+        else ""
+    )
     return (
-        f"<p class='warn'>Outlier screening: {_count(len(s.suspects), 'point')} the others do not "
-        f"support (|z| above {s.threshold:.2f}, the {level} false-alarm level of the stage; "
-        f"circled in the residuals). Without them the learned noise would be "
-        f"{_num(s.noise_std_without)} {html.escape(unit)} instead of {_num(s.noise_std)}: "
-        f"check those measurements.{cap}</p>" + _table(head, rows)
+        f"<p class='warn'>Outlier screening: {_count(k, 'point')} the others do not support "
+        f"(|z| above {s.threshold:.2f}, the {level} false-alarm level of the stage; circled "
+        f"in the residuals).{noise} Check {'those measurements' if k > 1 else 'that measurement'}."
+        f"{cap if s.capped else ''}{also}</p>" + _table(head, rows)
     )
 
 

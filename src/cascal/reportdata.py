@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cascade import stage_seed
 from .gp import Z95, FittedGP
 from .io.modelfile import CalibrationModel
 from .planning import GAP_FACTOR, find_gaps
@@ -151,7 +150,7 @@ def stage_views(model: CalibrationModel) -> list[StageView]:
                 residual_band=Z95 * np.sqrt(np.clip(known + m.noise_variance, 0.0, None)),
                 hyperparameters=m.hyperparameters,
                 log_marginal_likelihood=m.log_marginal_likelihood,
-                screening=screen(m, n_restarts=model.n_restarts, seed=stage_seed(model.seed, k)),
+                screening=screen(m),
             )
         else:
             extra = dict(

@@ -6,7 +6,7 @@ compared with what all the others predict for it (the leave-one-out posterior of
 target, GPML section 5.4.2, in closed form from the fit's Cholesky factor): a point is
 suspect where the standardised residual exceeds the two-sided Bonferroni threshold at a
 family-wise false-alarm probability ``level`` for the stage. The worst suspect is taken
-out, the stage refitted (hyperparameters learned again) and the rest screened again, until
+out, the stage's white noise learned again without it and the rest screened again, until
 no point exceeds the threshold. Each suspect is finally judged against the fit without all
 of them, where it no longer inflates the noise it is measured by.
 
@@ -22,18 +22,22 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import lapack, solve_triangular
+from scipy.optimize import minimize_scalar
 from scipy.special import ndtri
 from scipy.stats import f as f_dist
 
 from .errors import InputError, NumericalError
 from .gp import FittedGP, fit_gp
+from .linalg import cho_solve, cholesky, logdet
 from .noise import Dense, Diagonal, Noise
+from .validation import MIN_POINTS
 
 __all__ = [
     "Screening",
     "Spread",
     "Suspect",
     "loo_residuals",
+    "min_points",
     "screen",
     "screen_repeats",
     "threshold",
@@ -43,6 +47,8 @@ __all__ = [
 LEVEL = 0.01
 #: Default largest share of a stage's points taken out as suspects.
 MAX_FRACTION = 0.1
+#: A refit's white-noise variance is searched down to this factor (log) below the fit's.
+_NOISE_DROP = 30.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,6 +85,10 @@ class Screening:
         noise_std_without: The same, fitted without the suspects.
         capped: True when the search stopped at its largest share of points with more
             above the threshold: the model, not single readings, is then in doubt.
+        cap: The most points the search takes out.
+        detectable: False where a single outlier cannot be found at all: with a learned
+            noise, no |z| of the fit as given exceeds sqrt(n) (the noise grows to cover the
+            worst point), and below 12 points at 1 % that is under the threshold.
     """
 
     z: np.ndarray
@@ -87,12 +97,23 @@ class Screening:
     noise_std: float
     noise_std_without: float
     capped: bool = False
+    cap: int = 1
+    detectable: bool = True
 
 
 def threshold(n: int, level: float = LEVEL) -> float:
     """|z| above which one of ``n`` standard normals is suspect at family-wise ``level``
     (two-sided, Bonferroni): 3.78 for 64 points at 1 %, 4.56 for 2000."""
     return float(-ndtri(0.5 * level / n))
+
+
+def min_points(level: float = LEVEL) -> int:
+    """Fewest points at which a fit with a learned noise can show a single outlier at
+    ``level``: the smallest n with sqrt(n) above :func:`threshold` (12 at 1 %)."""
+    n = 2
+    while np.sqrt(n) <= threshold(n, level):
+        n += 1
+    return n
 
 
 def loo_residuals(gp: FittedGP) -> tuple[np.ndarray, np.ndarray]:
@@ -109,30 +130,25 @@ def loo_residuals(gp: FittedGP) -> tuple[np.ndarray, np.ndarray]:
     return gp.alpha / d, 1.0 / np.sqrt(d)
 
 
-def screen(
-    gp: FittedGP,
-    *,
-    level: float = LEVEL,
-    max_fraction: float = MAX_FRACTION,
-    n_restarts: int = 5,
-    seed: int | np.random.SeedSequence | None = 0,
-) -> Screening:
+def screen(gp: FittedGP, *, level: float = LEVEL, max_fraction: float = MAX_FRACTION) -> Screening:
     """Screen a fitted stage for outliers by backward deletion.
 
+    Each round takes out the point of largest |z| beyond the threshold and re-learns the
+    stage's white-noise variance without it, the kernel's hyperparameters held at their
+    fitted values: the noise is what an outlier inflates to hide itself and the others
+    (a few Cholesky factorisations per round, not a fit). A stage fitted with given
+    hyperparameters keeps its noise too.
+
     Args:
-        gp: The fitted stage; refits use its kernel family, mean and known noise (the
-            rows and columns of the kept points), learn a white noise when it has one,
-            and keep the hyperparameters when it was given them.
+        gp: The fitted stage.
         level: Family-wise false-alarm probability of each round (default 1 %).
-        max_fraction: Stop after this share of the points (at least one).
-        n_restarts, seed: For the refits, as in :func:`cascal.fit_gp`.
+        max_fraction: Take out at most this share of the points (at least one).
     """
     if not 0.0 < level < 1.0:
         raise InputError(f"level: expected a probability in (0, 1), got {level!r}")
     n = gp.x.size
     residual, std = loo_residuals(gp)
     z0 = residual / std
-    t = threshold(n, level)
     keep = np.ones(n, bool)
     found: list[int] = []
     current, z = gp, z0
@@ -142,17 +158,18 @@ def screen(
         worst = int(np.argmax(np.abs(z)))
         if not abs(z[worst]) > threshold(int(keep.sum()), level):
             break
-        if len(found) == cap or keep.sum() <= 3:
+        if len(found) == cap or keep.sum() <= MIN_POINTS:
             capped = True
             break
         found.append(int(np.flatnonzero(keep)[worst]))
         keep[found[-1]] = False
-        current = _refit(gp, keep, n_restarts, seed)
+        current = _refit(gp, keep)
         r, s = loo_residuals(current)
         z = r / s
     suspects = _judge(gp, current, keep, found) if found else ()
     return Screening(
-        z0, t, suspects, _noise_std(gp), _noise_std(current), capped
+        z0, threshold(n, level), suspects, _noise_std(gp), _noise_std(current), capped, cap,
+        not _learned(gp) or n >= min_points(level),
     )  # fmt: skip
 
 
@@ -160,28 +177,35 @@ def _noise_std(gp: FittedGP) -> float:
     return float(np.sqrt(gp.noise_variance))
 
 
-def _refit(gp: FittedGP, keep: np.ndarray, n_restarts: int, seed) -> FittedGP:
-    """``gp``'s stage fitted again on the points ``keep`` (mask, shape (n,))."""
+def _learned(gp: FittedGP) -> bool:
+    """Whether ``gp`` learned its white-noise variance (not given, not left out)."""
+    return gp.optimization is not None and gp.noise_variance > 0.0
+
+
+def _refit(gp: FittedGP, keep: np.ndarray) -> FittedGP:
+    """``gp`` on the points ``keep`` (mask, shape (n,)): the kernel's hyperparameters held,
+    the white-noise variance re-learned (bounded scalar search in its log) if it was."""
+    x, y = gp.x[keep], gp.y[keep]
     noise = _subset(gp.noise, gp.x.size, keep)
-    if gp.optimization is None:
-        return fit_gp(
-            gp.x[keep],
-            gp.y[keep],
-            kernel=gp.kernel,
-            mean=gp.mean,
-            noise=noise,
-            learn_noise=gp.noise_variance > 0 or noise is None,
-            hyperparameters=gp.hyperparameters,
-        )
+    sn2 = gp.noise_variance
+    if _learned(gp):
+        K = gp.kernel(x)
+        K = K if noise is None else noise.add_to(K)
+        r = y - gp.mean(x)
+        diag = np.arange(x.size) * (x.size + 1)
+
+        def cost(log_sn2: float) -> float:  # minus the log marginal likelihood, less a constant
+            Kt = K.copy()
+            Kt.flat[diag] += np.exp(log_sn2)
+            L, _ = cholesky(Kt, what="target covariance")
+            return 0.5 * float(r @ cho_solve(L, r)) + 0.5 * logdet(L)
+
+        t0 = np.log(sn2)
+        found = minimize_scalar(cost, bounds=(t0 - _NOISE_DROP, t0 + 1.0), method="bounded")
+        sn2 = float(np.exp(found.x))
+    hp = dict(gp.hyperparameters, noise_variance=sn2)
     return fit_gp(
-        gp.x[keep],
-        gp.y[keep],
-        kernel=gp.kernel,
-        mean=gp.mean,
-        noise=noise,
-        learn_noise=gp.noise_variance > 0 or noise is None,
-        n_restarts=n_restarts,
-        seed=seed,
+        x, y, kernel=gp.kernel, mean=gp.mean, noise=noise, learn_noise=sn2 > 0, hyperparameters=hp
     )
 
 

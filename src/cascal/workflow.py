@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .cascade import Cascade, stage_seed
+from .cascade import Cascade
 from .compensation import MAX_NODES, CompensationTable, compensation_table
-from .errors import CascalError, InputError
+from .errors import CascalError, InputError, NumericalError
 from .gp import FittedGP
 from .io.data import StageData, read_stage
 from .io.modelfile import CalibrationModel, load_model, save_model
@@ -149,14 +149,17 @@ class StageScreening:
     Attributes:
         stage: Index of the stage in the model.
         data: The stage file as read.
-        fit: Points its fit's other points do not support; None for a lookup table.
+        fit: Points its fit's other points do not support; None for a lookup table or
+            where the screening failed.
         spread: Positions whose repeated readings scatter too much.
+        problem: Why the fit's screening failed (a numerical error), or None.
     """
 
     stage: int
     data: StageData
     fit: Screening | None
     spread: tuple[Spread, ...]
+    problem: str | None = None
 
     @property
     def rows(self) -> list[int]:
@@ -189,14 +192,16 @@ def screen_stages(
     out = []
     for k, data in enumerate(stages, start=first):
         gp = model.fitted.models[k]
-        fit = None
+        fit = problem = None
         if isinstance(gp, FittedGP):
-            seed = stage_seed(model.seed, k)
-            fit = screen(gp, level=level, n_restarts=model.n_restarts, seed=seed)
+            try:
+                fit = screen(gp, level=level)
+            except NumericalError as exc:  # a screening never costs the user the fit
+                problem = str(exc)
         spread = ()
         if data.raw_x is not None and data.raw_y is not None:
             spread = screen_repeats(data.raw_x, data.raw_y, level=level)
-        out.append(StageScreening(k, data, fit, spread))
+        out.append(StageScreening(k, data, fit, spread, problem))
     return out
 
 

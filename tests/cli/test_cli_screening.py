@@ -57,7 +57,7 @@ def test_fit_names_the_rows_and_the_numbers_are_the_library_s(spoiled):
     assert "is the farthest of the 3 readings at testbed" in warnings[0]
     assert "(rows 41, 42 and 43)" in warnings[0]
     assert warnings[1].startswith(f"cascal fit: warning: {bad_dev} row 101: testbed ")
-    assert warnings[2].startswith(f"cascal fit: warning: {bad_dev}: without the 1 suspect")
+    assert warnings[2].startswith(f"cascal fit: warning: {bad_dev}: without the suspect point")
     # The printed figures are the library's, on the model the command wrote.
     model = load_model(tmp / "m.json")
     ref_data = read_stage(bad_ref)
@@ -65,7 +65,7 @@ def test_fit_names_the_rows_and_the_numbers_are_the_library_s(spoiled):
     assert ref_data.raw_rows[spread.farthest] == 41
     assert f"scatter {spread.ratio:.1f} times" in warnings[0]
     assert f"(p = {spread.p:.2g})" in warnings[0]
-    device = screen(model.fitted.models[1], n_restarts=model.n_restarts)
+    device = screen(model.fitted.models[1])
     (q,) = device.suspects
     z = float(re.search(r"lies ([0-9.]+) standard deviations above", warnings[1]).group(1))
     assert z == round(q.z, 1) and z > device.threshold
@@ -119,6 +119,8 @@ def test_fleet_summary_lists_suspect_rows(spoiled, linear_files):
     assert re.search(r"\] a: rms correction [^,]*, largest u [0-9.e+-]+\n", res.stdout)
     assert f"fit-devices: warning: {bad_ref} row 41:" in res.stderr
     assert f"fit-devices: warning: {folder / 'b.csv'} row 101:" in res.stderr
+    assert "Outlier screening of the test bed (1 % " in res.stdout
+    assert "Outlier screening of the devices: 1 of 2 with suspect rows" in res.stdout
     with open(tmp / "fleet" / "fleet_summary.csv", newline="") as fh:
         rows = {r["device"]: r for r in csv.DictReader(fh)}
     assert rows["a"]["suspect_rows"] == "" and rows["b"]["suspect_rows"] == "101"
@@ -162,8 +164,66 @@ def test_fit_says_when_more_points_disagree_than_it_takes_out(tmp_path):
     assert rows == [5, 10, 15, 20, 25, 30]  # file rows of the six largest, worst first
     assert "without the 6 suspect points its learned noise" in lines[-2]
     assert lines[-1].endswith(
-        "more points disagree with the others than the screening takes out (at most 10% of "
-        "them): its noise may not be Gaussian, or the map may be rougher than the kernel "
+        "more points disagree with the others than the screening takes out (at most 6 of "
+        "its 60): its noise may not be Gaussian, or the map may be rougher than the kernel "
         "allows (see the residuals in cascal report)"
     )
     assert "6 suspect rows" in res.stdout
+
+
+def test_too_few_points_to_find_an_outlier_is_said(tmp_path):
+    x = np.linspace(0.0, 1.0, 8)
+    y = x + 0.01 * np.sin(5 * x)
+    y[4] += 0.05  # gross, yet the learned noise covers it: |z| <= sqrt(8) < 3.23
+    stage = tmp_path / "stage.csv"
+    cells = "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(x, y, strict=True))
+    stage.write_text("reading,reference\n" + cells)
+    res = run_cascal("fit", stage, "-o", tmp_path / "m.json")
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.strip() == (
+        f"cascal fit: warning: {stage}: 8 points are too few for the leave-one-out check to "
+        "find an outlier (the noise it learns covers any single point; it needs 12 or more)"
+    )
+    assert "no single suspect row, but see the warnings" in res.stdout
+    assert (tmp_path / "m.json").exists()
+
+
+def test_a_failed_screening_is_a_warning_and_the_model_is_kept(spoiled, monkeypatch):
+    from cascal import workflow
+    from cascal.cli_screening import screening_lines, screening_summary
+    from cascal.errors import NumericalError
+
+    _, bad_ref, bad_dev = spoiled
+    data = [read_stage(bad_ref), read_stage(bad_dev)]
+    model = fit_model(data)
+
+    def broken(gp, level):
+        raise NumericalError("target covariance is not positive definite")
+
+    monkeypatch.setattr(workflow, "screen", broken)
+    checks = screen_stages(model, data)
+    assert [c.problem for c in checks] == ["target covariance is not positive definite"] * 2
+    assert [c.rows for c in checks] == [[41], []]  # the repeats are still screened
+    assert screening_lines(checks[1], "m") == [
+        f"{bad_dev}: the leave-one-out check stopped: target covariance is not positive definite"
+    ]
+    assert screening_summary(checks).endswith(
+        "1 suspect row, see the warnings; one check failed, see the warnings"
+    )
+
+
+def test_rotary_outlier_next_to_the_seam_is_named_by_its_row(tmp_path):
+    from cli_helpers import write_case
+
+    from cascal.demo import rotary_demo
+
+    (ref, dev), _ = write_case(rotary_demo(0), tmp_path / "rotary")
+    first = float(dev.read_text().splitlines()[1].split(",")[0])
+    assert first < 2.0  # the first device reading, a degree past the seam
+    bad = tmp_path / "device.csv"
+    _spoil(dev, bad, {2: 3e-3})  # 30 noise standard deviations
+    res = run_cascal("fit", ref, bad, "-o", tmp_path / "m.json", "--kernel", "periodic",
+                     "--period", "360", "--unit", "deg")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert f"warning: {bad} row 2: " in res.stderr and " deg); check that measurement" in res.stderr
+    assert "1 suspect row, see the warnings" in res.stdout
