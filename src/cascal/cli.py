@@ -220,10 +220,9 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     (testbed,) = _read_stages([args.testbed], args)
     out = Path(args.output)
     tb = fit_model([testbed], **_fit_kwargs(args))
-    checks = screen_stages(tb, [testbed])
     tb_model = save_model(out / "testbed.json", tb)
     print(f"Test bed fitted once: {tb_model}")
-    report_screening("fit-devices", checks, tb.unit, " of the test bed")
+    report_screening("fit-devices", screen_stages(tb, [testbed]), tb.unit, " of the test bed")
     options = dict(_fit_kwargs(args), x_column=_one(args.x_column), y_column=_one(args.y_column))
 
     t0, done = time.perf_counter(), [0]
