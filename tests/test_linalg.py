@@ -6,7 +6,14 @@ import numpy as np
 import pytest
 
 from cascal import NumericalError, fit_gp
-from cascal.linalg import JITTER_STEPS, cho_solve, cholesky, inverse_from_cholesky, logdet
+from cascal.linalg import (
+    JITTER_STEPS,
+    cho_solve,
+    cholesky,
+    inverse_diagonal,
+    inverse_from_cholesky,
+    logdet,
+)
 from utils import assert_allclose, se
 
 
@@ -99,3 +106,4 @@ def test_logdet_and_inverse(spd):
     inv = inverse_from_cholesky(L)
     assert_allclose(inv, inv.T, rtol=1e-14, atol=1e-18)
     assert_allclose(inv, np.linalg.inv(spd), rtol=1e-10, atol=1e-14)
+    assert_allclose(inverse_diagonal(L), np.diag(np.linalg.inv(spd)), rtol=1e-10)

@@ -21,16 +21,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import lapack, solve_triangular
+from scipy.linalg import solve_triangular
 from scipy.optimize import minimize_scalar
 from scipy.special import ndtri
 from scipy.stats import f as f_dist
 
-from .errors import InputError, NumericalError
+from .errors import InputError
 from .gp import FittedGP, fit_gp
-from .linalg import cho_solve, cholesky, logdet
+from .likelihood import Objective
+from .linalg import inverse_diagonal
 from .noise import Dense, Diagonal, Noise
-from .validation import MIN_POINTS
+from .validation import MIN_POINTS, aggregate_repeats
 
 __all__ = [
     "Screening",
@@ -123,10 +124,7 @@ def loo_residuals(gp: FittedGP) -> tuple[np.ndarray, np.ndarray]:
     ``std_i = [Kt^-1]_ii^-1/2``, Kt the target covariance (kernel, known and learned
     noise) of the fit; hyperparameters held at their fitted values.
     """
-    Linv, info = lapack.dtrtri(gp.L, lower=1)
-    if info != 0:
-        raise NumericalError(f"triangular inverse failed (info={info})")
-    d = np.einsum("ij,ij->j", Linv, Linv)  # [Kt^-1]_ii = column norms of L^-1, squared
+    d = inverse_diagonal(gp.L)
     return gp.alpha / d, 1.0 / np.sqrt(d)
 
 
@@ -189,16 +187,11 @@ def _refit(gp: FittedGP, keep: np.ndarray) -> FittedGP:
     noise = _subset(gp.noise, gp.x.size, keep)
     sn2 = gp.noise_variance
     if _learned(gp):
-        K = gp.kernel(x)
-        K = K if noise is None else noise.add_to(K)
-        r = y - gp.mean(x)
-        diag = np.arange(x.size) * (x.size + 1)
+        objective = Objective(x, y - gp.mean(x), gp.kernel, noise, learn_noise=True)
+        theta = gp.kernel.theta
 
-        def cost(log_sn2: float) -> float:  # minus the log marginal likelihood, less a constant
-            Kt = K.copy()
-            Kt.flat[diag] += np.exp(log_sn2)
-            L, _ = cholesky(Kt, what="target covariance")
-            return 0.5 * float(r @ cho_solve(L, r)) + 0.5 * logdet(L)
+        def cost(log_sn2: float) -> float:
+            return -objective.value(np.r_[theta, log_sn2])
 
         t0 = np.log(sn2)
         found = minimize_scalar(cost, bounds=(t0 - _NOISE_DROP, t0 + 1.0), method="bounded")
@@ -275,11 +268,10 @@ def screen_repeats(
     """
     if not 0.0 < level < 1.0:
         raise InputError(f"level: expected a probability in (0, 1), got {level!r}")
-    x = np.asarray(x, dtype=float)
+    rep = aggregate_repeats(x, y)
     y = np.asarray(y, dtype=float)
-    ux, inverse, counts = np.unique(x, return_inverse=True, return_counts=True)
-    mean = np.bincount(inverse, weights=y, minlength=ux.size) / counts
-    ss = np.bincount(inverse, weights=(y - mean[inverse]) ** 2, minlength=ux.size)
+    ux, inverse, counts = rep.x, rep.inverse, rep.counts
+    ss = np.bincount(inverse, weights=(y - rep.y[inverse]) ** 2, minlength=ux.size)
     groups = np.flatnonzero(counts > 1)
     if groups.size < 2:
         return ()

@@ -110,6 +110,7 @@ class Repeats:
         noise: Variance of that mean, ``s^2 / count`` (0 where count is 1), shape (k,).
         counts: Readings per position, shape (k,).
         first: Index of each position's first reading in the input, shape (k,).
+        inverse: Position of each reading of the input, shape (n,).
     """
 
     x: np.ndarray
@@ -117,6 +118,7 @@ class Repeats:
     noise: np.ndarray
     counts: np.ndarray
     first: np.ndarray
+    inverse: np.ndarray
 
 
 def aggregate_repeats(x: object, y: object, names: tuple[str, str] = ("x", "y")) -> Repeats:
@@ -142,4 +144,4 @@ def aggregate_repeats(x: object, y: object, names: tuple[str, str] = ("x", "y"))
     ym = np.bincount(inverse, weights=ya, minlength=ux.size) / counts
     ss = np.bincount(inverse, weights=(ya - ym[inverse]) ** 2, minlength=ux.size)
     noise = np.where(counts > 1, ss / np.maximum(counts - 1, 1) / counts, 0.0)
-    return Repeats(ux, ym, noise, counts, first)
+    return Repeats(ux, ym, noise, counts, first, inverse)
