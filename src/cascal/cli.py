@@ -143,7 +143,7 @@ def _negative_value(text: str) -> bool:
 
 def _cmd_fit(args: argparse.Namespace) -> int:
     """Fit stage files (reference end first) and write a model file."""
-    from .cli_screening import report_screening
+    from .cli_screening import SKIPPED, report_screening
     from .io.modelfile import save_model
     from .workflow import fit_model, screen_stages
 
@@ -152,7 +152,10 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     model = fit_model(data, **_fit_kwargs(args))
     path = save_model(args.output, model)
     _print_model(model)
-    report_screening("fit", screen_stages(model, data), model.unit)
+    if args.no_screening:
+        print(SKIPPED)
+    else:
+        report_screening("fit", screen_stages(model, data, level=_level(args)), model.unit)
     print(f"Model written to {path}")
     return 0
 
@@ -207,7 +210,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
 
 def _cmd_fit_devices(args: argparse.Namespace) -> int:
     """Fit the test bed once, then every device file in a folder against it, in parallel."""
-    from .cli_screening import report_screening, screening_lines
+    from .cli_screening import SKIPPED, report_screening, screening_lines
     from .io.atomic import write_text
     from .io.modelfile import save_model
     from .workflow import fit_devices, fit_model, screen_stages
@@ -222,8 +225,18 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     tb = fit_model([testbed], **_fit_kwargs(args))
     tb_model = save_model(out / "testbed.json", tb)
     print(f"Test bed fitted once: {tb_model}")
-    report_screening("fit-devices", screen_stages(tb, [testbed]), tb.unit, " of the test bed")
-    options = dict(_fit_kwargs(args), x_column=_one(args.x_column), y_column=_one(args.y_column))
+    level = None if args.no_screening else _level(args)
+    if level is None:
+        print(SKIPPED)
+    else:
+        checks = screen_stages(tb, [testbed], level=level)
+        report_screening("fit-devices", checks, tb.unit, " of the test bed")
+    options = dict(
+        _fit_kwargs(args),
+        x_column=_one(args.x_column),
+        y_column=_one(args.y_column),
+        screening_level=level,
+    )
 
     t0, done = time.perf_counter(), [0]
 
@@ -252,10 +265,11 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     summary = write_text(out / "fleet_summary.csv", _fleet_csv(results))
     n_bad = sum(r.error is not None for r in results)
     n_sus = sum(bool(r.screening and r.screening.rows) for r in results)
-    print(
-        f"Outlier screening of the devices: {n_sus} of {len(results) - n_bad} with suspect "
-        "rows (column suspect_rows of the summary)"
-    )
+    if level is not None:
+        print(
+            f"Outlier screening of the devices: {n_sus} of {len(results) - n_bad} with "
+            "suspect rows (column suspect_rows of the summary)"
+        )
     print(f"{len(results) - n_bad} of {len(results)} devices calibrated; summary: {summary}")
     return EXIT_FAILURE if n_bad else 0
 
@@ -324,6 +338,13 @@ def _fit_kwargs(args: argparse.Namespace) -> dict[str, object]:
         n_restarts=args.restarts,
         seed=args.seed,
     )
+
+
+def _level(args: argparse.Namespace) -> float:
+    """The screening level given, or the library's default."""
+    from .screening import LEVEL
+
+    return LEVEL if args.level is None else args.level
 
 
 def _print_model(model) -> None:
@@ -425,6 +446,23 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--restarts", type=positive_int, default=5, help="optimiser starts per stage (default 5)"
     )
+    screening = p.add_mutually_exclusive_group()
+    screening.add_argument(
+        "--screening-level",
+        dest="level",
+        type=probability,
+        default=None,
+        metavar="P",
+        help=(
+            "false-alarm probability of the outlier screening, per stage file and check "
+            "(default 0.01); smaller finds fewer, larger outliers"
+        ),
+    )
+    screening.add_argument(
+        "--no-screening",
+        action="store_true",
+        help="skip the outlier screening of the stage files",
+    )
 
 
 def unit(text: str) -> str:
@@ -448,6 +486,20 @@ def _whole(text: str, low: int, expected: str) -> int:
 def seed(text: str) -> int:
     """argparse type: a seed, a whole number of at least 0."""
     return _whole(text, 0, "a seed >= 0")
+
+
+def probability(text: str) -> float:
+    """argparse type: a probability strictly between 0 and 1."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(
+            f"expected a probability between 0 and 1, got {text}"
+            + (" (--no-screening turns the screening off)" if value == 0 else "")
+        )
+    return value
 
 
 def positive_int(text: str) -> int:

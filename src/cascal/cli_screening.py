@@ -5,7 +5,10 @@ from __future__ import annotations
 from .screening import LEVEL, min_points
 from .workflow import StageScreening
 
-__all__ = ["report_screening", "screening_lines", "screening_summary"]
+__all__ = ["SKIPPED", "report_screening", "screening_lines", "screening_summary"]
+
+#: What ``fit`` and ``fit-devices`` print in place of the summary with --no-screening.
+SKIPPED = "Outlier screening: skipped (--no-screening)"
 
 
 def _rows(rows) -> str:
@@ -69,14 +72,14 @@ def screening_lines(check: StageScreening, unit: str) -> list[str]:
         lines.append(
             f"{file}: {fit.z.size} points are too few for the leave-one-out check to find an "
             f"outlier (the noise it learns covers any single point; it needs "
-            f"{min_points(LEVEL)} or more)"
+            f"{min_points(check.level)} or more)"
         )
     return lines
 
 
 def screening_summary(checks: list[StageScreening], what: str = "") -> str:
-    """One line: what was screened (``what``, e.g. ``" of the test bed"``) and how many
-    rows are suspect."""
+    """One line: what was screened (``what``, e.g. ``" of the test bed"``), at which
+    level, and how many rows are suspect."""
     rows = sum(len(c.rows) for c in checks)
     found = f"{rows} suspect row{'s' * (rows != 1)}, see the warnings" if rows else "none found"
     if not rows and any(c.fit and (c.fit.capped or not c.fit.detectable) for c in checks):
@@ -85,7 +88,8 @@ def screening_summary(checks: list[StageScreening], what: str = "") -> str:
         found = f"{found}; one check failed, see the warnings"
     elif any(c.fit is None for c in checks):
         found += " (lookup tables: repeated readings only)"
-    level = f"{LEVEL * 100:g} % false-alarm level per stage and check"
+    level = checks[0].level if checks else LEVEL
+    level = f"{level * 100:g} % false-alarm level per stage and check"
     return f"Outlier screening{what} ({level}): {found}"
 
 

@@ -153,6 +153,7 @@ class StageScreening:
             where the screening failed.
         spread: Positions whose repeated readings scatter too much.
         problem: Why the fit's screening failed (a numerical error), or None.
+        level: Family-wise false-alarm probability of each check.
     """
 
     stage: int
@@ -160,6 +161,7 @@ class StageScreening:
     fit: Screening | None
     spread: tuple[Spread, ...]
     problem: str | None = None
+    level: float = LEVEL
 
     @property
     def rows(self) -> list[int]:
@@ -201,7 +203,7 @@ def screen_stages(
         spread = ()
         if data.raw_x is not None and data.raw_y is not None:
             spread = screen_repeats(data.raw_x, data.raw_y, level=level)
-        out.append(StageScreening(k, data, fit, spread, problem))
+        out.append(StageScreening(k, data, fit, spread, problem, level))
     return out
 
 
@@ -475,6 +477,8 @@ def fit_devices(
         options: ``x_column``, ``y_column`` for the files; ``method``, ``kernel``, ``period``,
             ``unit``, ``n_restarts``, ``seed`` as for :func:`fit_model` (every device gets
             the same seed, so its model equals ``cascal fit TESTBED DEVICE`` with it).
+            ``screening_level``: false-alarm level of the outlier screening of each device
+            file (default 1 %; None skips it).
         jobs: Worker processes; 1 fits in this process.
         on_result: Called with each result as it completes.
 
@@ -522,7 +526,10 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
             if k in options
         }
         model = fit_model([data], prefix=prefix, **fit_opts)  # type: ignore[arg-type]
-        (check,) = screen_stages(model, [data])
+        level = options.get("screening_level", LEVEL)
+        check = None
+        if level is not None:
+            (check,) = screen_stages(model, [data], level=float(level))  # type: ignore[arg-type]
         path = save_model(out, model)
         s = summarize_device(model)
     except (CascalError, OSError) as exc:

@@ -227,3 +227,78 @@ def test_rotary_outlier_next_to_the_seam_is_named_by_its_row(tmp_path):
     assert res.returncode == 0, res.stderr
     assert f"warning: {bad} row 2: " in res.stderr and " deg); check that measurement" in res.stderr
     assert "1 suspect row, see the warnings" in res.stdout
+
+
+def test_screening_level_is_passed_on_and_can_be_turned_off(spoiled):
+    from cascal.cli_screening import SKIPPED
+    from cascal.screening import LEVEL
+
+    tmp, bad_ref, bad_dev = spoiled
+    data = [read_stage(bad_ref), read_stage(bad_dev)]
+    strict = run_cascal("fit", bad_ref, bad_dev, "-o", tmp / "strict.json",
+                        "--screening-level", "1e-6")  # fmt: skip
+    assert strict.returncode == 0, strict.stderr
+    model = load_model(tmp / "strict.json")
+    checks = screen_stages(model, data, level=1e-6)
+    # Row 101 (4.4 sd) is below the threshold at 1e-6 (5.3 sd for 200 points), row 41 not.
+    assert [c.rows for c in checks] == [[41], []]
+    assert checks[1].fit.threshold > 5.0 > abs(checks[1].fit.z).max()
+    assert "(0.0001 % false-alarm level per stage and check): 1 suspect row" in strict.stdout
+    assert f"{bad_ref} row 41: " in strict.stderr and "row 101" not in strict.stderr
+    off = run_cascal("fit", bad_ref, bad_dev, "-o", tmp / "off.json", "--no-screening")
+    assert off.returncode == 0, off.stderr
+    assert off.stderr == "" and SKIPPED in off.stdout and "suspect" not in off.stdout
+    # Screening never changes the model.
+    a, b = load_model(tmp / "off.json"), load_model(tmp / "strict.json")
+    for ga, gb in zip(a.fitted.models, b.fitted.models, strict=True):
+        assert ga.hyperparameters == gb.hyperparameters
+    # The help states the library's default.
+    assert f"(default {LEVEL:g})" in run_cascal("fit", "--help").stdout.replace("\n", " ")
+
+
+def test_fit_devices_screens_at_the_level_given_or_not_at_all(spoiled, linear_files):
+    from cascal.cli_screening import SKIPPED
+
+    tmp, bad_ref, bad_dev = spoiled
+    (_, good_dev), _ = linear_files
+    folder = tmp / "devices2"
+    folder.mkdir()
+    (folder / "a.csv").write_text(good_dev.read_text())
+    (folder / "b.csv").write_text(bad_dev.read_text())
+    strict = run_cascal("fit-devices", bad_ref, "--devices", folder, "-o", tmp / "fleet2",
+                        "--screening-level", "1e-6", "--jobs", "1")  # fmt: skip
+    assert strict.returncode == 0, strict.stderr
+    assert "Outlier screening of the test bed (0.0001 % " in strict.stdout
+    assert "Outlier screening of the devices: 0 of 2 with suspect rows" in strict.stdout
+    assert "row 101" not in strict.stderr and f"{bad_ref} row 41:" in strict.stderr
+    off = run_cascal("fit-devices", bad_ref, "--devices", folder, "-o", tmp / "fleet3",
+                     "--no-screening", "--jobs", "1")  # fmt: skip
+    assert off.returncode == 0, off.stderr
+    assert off.stderr == "" and SKIPPED in off.stdout
+    assert "Outlier screening of the devices" not in off.stdout
+    assert "suspect row" not in off.stdout
+    with open(tmp / "fleet3" / "fleet_summary.csv", newline="") as fh:
+        assert [r["suspect_rows"] for r in csv.DictReader(fh)] == ["", ""]
+
+
+@pytest.mark.parametrize(
+    ("value", "words"),
+    [
+        ("0", "between 0 and 1, got 0 (--no-screening turns the screening off)"),
+        ("1", "between 0 and 1, got 1"),
+        ("nan", "between 0 and 1, got nan"),
+        ("often", "expected a number, got 'often'"),
+    ],
+)
+def test_a_bad_screening_level_is_refused(value, words, tmp_path, linear_files):
+    files, _ = linear_files
+    res = run_cascal("fit", *files, "-o", tmp_path / "m.json", "--screening-level", value)
+    assert res.returncode == 2 and words in res.stderr and "Traceback" not in res.stderr
+    assert not (tmp_path / "m.json").exists()
+
+
+def test_screening_level_and_no_screening_exclude_each_other(tmp_path, linear_files):
+    files, _ = linear_files
+    res = run_cascal("fit", *files, "-o", tmp_path / "m.json", "--screening-level", "0.05",
+                     "--no-screening")  # fmt: skip
+    assert res.returncode == 2 and "not allowed with argument" in res.stderr
