@@ -151,7 +151,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     data = _read_stages(args.stages, args)
     model = fit_model(data, **_fit_kwargs(args))
     path = save_model(args.output, model)
-    _print_model(model)
+    print("\n".join(model_lines(model)))
     if args.no_screening:
         print(SKIPPED)
     else:
@@ -347,16 +347,19 @@ def _level(args: argparse.Namespace) -> float:
     return LEVEL if args.level is None else args.level
 
 
-def _print_model(model) -> None:
+def model_lines(model) -> list[str]:
+    """One line per stage (file, rows, points, hyperparameters), then the calibrated
+    range."""
+    lines = []
     for k, (m, src, counts) in enumerate(
         zip(model.fitted.models, model.sources, model.counts, strict=True)
     ):
         hp = getattr(m, "hyperparameters", {})
         text = ", ".join(f"{name} {v:.4g}" for name, v in hp.items()) or "lookup table"
-        print(f"Stage {k} ({src.file}: {src.rows} rows, {counts.size} points): {text}")
+        lines.append(f"Stage {k} ({src.file}: {src.rows} rows, {counts.size} points): {text}")
     lo, hi = model.calibrated_range
     span = f"full turn (period {model.period:g})" if model.periodic else f"[{lo:.9g}, {hi:.9g}]"
-    print(f"Calibrated device range: {span} {model.unit}")
+    return [*lines, f"Calibrated device range: {span} {model.unit}"]
 
 
 def _fleet_csv(results) -> str:
@@ -588,11 +591,13 @@ def _parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
 
     from .cli_export import add_export_parser
+    from .cli_info import add_info_parser
     from .cli_plan import add_plan_parser
     from .cli_study import add_study_parser
     from .cli_verify import add_verify_parser
 
     add_export_parser(sub)
+    add_info_parser(sub)
     add_plan_parser(sub)
     add_verify_parser(sub)
     add_study_parser(sub)

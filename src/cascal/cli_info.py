@@ -1,0 +1,72 @@
+"""``cascal info``: what a model file holds, in the terminal, and whether its input files
+are still as they were when it was fitted."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+from pathlib import Path
+
+__all__ = ["add_info_parser", "input_status"]
+
+
+def input_status(file: str | Path, sha256: str, base: Path | None = None) -> str:
+    """``"unchanged"``, ``"changed since the fit"`` or ``"not found"``: the file a model
+    names against the SHA-256 recorded for it. The path is as given to the fit; a relative
+    one is looked up from here, then from ``base`` (the model file's folder), then its name
+    alone in ``base``."""
+    candidates = [Path(file)]
+    if base is not None and not Path(file).is_absolute():
+        candidates += [base / file, base / Path(file).name]
+    for path in candidates:
+        if path.is_file():
+            digest = hashlib.sha256(path.read_bytes()).hexdigest()
+            return "unchanged" if digest == sha256 else "changed since the fit"
+    return "not found"
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from .cli import model_lines, warn
+    from .io.modelfile import SCHEMA_VERSION, load_model
+    from .workflow import summarize_device
+
+    model = load_model(args.model)
+    n = len(model.fitted.models)
+    print(f"{args.model}: cascal model file, schema {SCHEMA_VERSION}, checksum verified")
+    print(
+        f"Fitted {model.created} with cascal {model.cascal_version} (seed {model.seed}, "
+        f"{model.n_restarts} optimiser starts per stage)"
+    )
+    kernel = "" if model.kernel is None else f", kernel {model.kernel}"
+    period = "" if model.period is None else f" (period {model.period:g})"
+    print(f"Method {model.method}{kernel}{period}, unit {model.unit}, {n} stage{'s' * (n > 1)}")
+    changed = []
+    for k, line in enumerate(model_lines(model)):
+        print(line)
+        if k >= n:
+            continue
+        gp, src = model.fitted.models[k], model.sources[k]
+        lml = getattr(gp, "log_marginal_likelihood", None)
+        if lml is not None:
+            jitter = f"jitter {gp.jitter:.3g}" if gp.jitter else "no jitter"
+            print(f"  log marginal likelihood {lml:.6g}, {jitter}")
+        status = input_status(src.file, src.sha256, Path(args.model).parent)
+        print(f"  input {src.file} (columns {', '.join(src.columns)}): {status}")
+        if status == "changed since the fit":
+            changed.append(src.file)
+    s = summarize_device(model)
+    u = s["max_u"]
+    largest = "no uncertainty (lookup tables)" if u != u else f"largest u {u:.3g} {model.unit}"
+    print(f"Correction over it: RMS {s['rms_correction']:.3g} {model.unit}, {largest}")
+    for file in changed:
+        warn("info", f"{file} is not the file this model was fitted from (its SHA-256 differs)")
+    return 0
+
+
+def add_info_parser(sub) -> None:
+    """Register ``cascal info`` on the subparsers ``sub``."""
+    p = sub.add_parser(
+        "info", help="summarise a model file and check its input files against their checksums"
+    )
+    p.add_argument("model", metavar="MODEL.json")
+    p.set_defaults(func=_cmd_info)

@@ -1,0 +1,84 @@
+"""``cascal info``: a model file's summary and its input files' checksums."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+from cli_helpers import run_cascal
+
+from cascal.cli_info import input_status
+from cascal.io.modelfile import load_model
+from cascal.workflow import correct
+
+
+def test_info_prints_what_the_model_holds(linear_model):
+    res = run_cascal("info", linear_model)
+    assert res.returncode == 0, res.stderr
+    assert res.stderr == ""
+    lines = res.stdout.splitlines()
+    model = load_model(linear_model)
+    assert lines[0] == f"{linear_model}: cascal model file, schema 1, checksum verified"
+    assert f"Fitted {model.created} with cascal {model.cascal_version} (seed 0, 5 " in lines[1]
+    assert lines[2] == "Method bayes, kernel se, unit m, 2 stages"
+    for k, gp in enumerate(model.fitted.models):
+        head = [i for i, t in enumerate(lines) if t.startswith(f"Stage {k} (")]
+        (i,) = head
+        ls = gp.hyperparameters["length_scale"]
+        assert f"length_scale {ls:.4g}," in lines[i]
+        lml = gp.log_marginal_likelihood
+        assert lines[i + 1] == f"  log marginal likelihood {lml:.6g}, no jitter"
+        src = model.sources[k]
+        assert lines[i + 2] == f"  input {src.file} (columns {', '.join(src.columns)}): unchanged"
+    # The correction's size, computed here on a grid of the calibrated range.
+    lo, hi = model.calibrated_range
+    grid = np.linspace(lo, hi, 1001)
+    c = correct(model, grid)
+    rms = np.sqrt(np.mean((c.corrected - grid) ** 2))
+    assert lines[-1] == f"Correction over it: RMS {rms:.3g} m, largest u {c.u.max():.3g} m"
+
+
+def test_info_says_when_an_input_changed_or_is_gone(linear_files, tmp_path):
+    files, _ = linear_files
+    ref, dev = (shutil.copy(f, tmp_path / f.name) for f in files)
+    model = tmp_path / "m.json"
+    assert run_cascal("fit", ref, dev, "-o", model, "--method", "lut").returncode == 0
+    with open(dev, "a") as fh:
+        fh.write("0.5,0.5\n")
+    (tmp_path / ref.name).unlink()
+    res = run_cascal("info", model)
+    assert res.returncode == 0, res.stderr
+    assert f"  input {ref} (columns testbed, reference): not found" in res.stdout
+    assert f"  input {dev} (columns device, testbed): changed since the fit" in res.stdout
+    assert res.stderr == (
+        f"cascal info: warning: {dev} is not the file this model was fitted from (its "
+        "SHA-256 differs)\n"
+    )
+    assert "log marginal likelihood" not in res.stdout  # lookup tables
+    assert "Stage 0 (" in res.stdout and ": lookup table" in res.stdout
+    assert res.stdout.splitlines()[-1].endswith(", no uncertainty (lookup tables)")
+
+
+def test_input_status_looks_beside_the_model(tmp_path):
+    import hashlib
+
+    folder = tmp_path / "moved"
+    folder.mkdir()
+    f = folder / "stage.csv"
+    f.write_text("a,b\n1,2\n")
+    digest = hashlib.sha256(f.read_bytes()).hexdigest()
+    assert input_status(f, digest) == "unchanged"
+    assert input_status(f, "0" * 64) == "changed since the fit"
+    # A relative path from the fit's folder: found by its name beside the model.
+    assert input_status("elsewhere/stage.csv", digest) == "not found"
+    assert input_status("elsewhere/stage.csv", digest, base=folder) == "unchanged"
+
+
+def test_info_refuses_a_damaged_model(linear_model, tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text(linear_model.read_text().replace('"seed": 0', '"seed": 1'))
+    res = run_cascal("info", bad)
+    assert res.returncode == 2 and "checksum mismatch" in res.stderr
+    assert "Traceback" not in res.stderr and res.stdout == ""
+    res = run_cascal("info", tmp_path / "missing.json")
+    assert res.returncode == 2 and "cannot read the model file" in res.stderr
