@@ -174,3 +174,51 @@ def test_values_too_large_are_named_when_a_bound_is_given(tmp_path):
     with pytest.raises(InputError, match=r"big.csv, row 3, column 'b': -1e\+200 is too large"):
         read_table(p, (None, None), max_abs=1e150)
     assert read_table(p, ("a",), max_abs=1e150).columns[0][1] == 3.0  # b not wanted
+
+
+def _stage_lines(n: int, seed: int = 0) -> list[str]:
+    """A stage file's lines (header first): n readings, every third position read twice."""
+    rng = np.random.default_rng(seed)
+    x = np.repeat(np.linspace(0.0, 1.0, n), np.where(np.arange(n) % 3 == 0, 2, 1))
+    y = x + 0.01 * np.sin(4 * x) + rng.normal(0.0, 1e-5, x.size)
+    return ["reading,reference", *[f"{float(a)!r},{float(b)!r}" for a, b in zip(x, y, strict=True)]]
+
+
+@pytest.mark.parametrize("n", [40, 6000])  # the exact path, and NumPy's fast one
+def test_excluded_rows_read_as_the_file_without_them(tmp_path, n):
+    lines = _stage_lines(n)
+    drop = {2, 3, 17, len(lines)}  # both readings of a repeated position, one, the last
+    full = _write(tmp_path, "\n".join(lines) + "\n", "full.csv")
+    cut = [line for r, line in enumerate(lines, start=1) if r not in drop]
+    without = _write(tmp_path, "\n".join(cut) + "\n", "cut.csv")
+    a, b = read_stage(full, exclude=drop), read_stage(without)
+    for name in ("x", "y", "noise", "counts", "raw_x", "raw_y"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    kept = [r for r in range(2, len(lines) + 1) if r not in drop]
+    np.testing.assert_array_equal(a.raw_rows, kept)  # the file's own row numbers
+    assert a.source.excluded == tuple(sorted(drop)) and a.source.rows == len(kept)
+    assert (
+        b.source.excluded == () and a.source.sha256 == hashlib.sha256(full.read_bytes()).hexdigest()
+    )
+
+
+def test_an_excluded_row_is_not_read(tmp_path):
+    lines = _stage_lines(20)
+    lines[5] = "0.3,oops"  # file row 6
+    p = _write(tmp_path, "\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="'oops'"):
+        read_stage(p)
+    assert read_stage(p, exclude={6}).source.excluded == (6,)
+
+
+@pytest.mark.parametrize(
+    ("row", "words"),
+    [(1, "the header"), (0, "rows count from 1"), (4, "blank"), (99, "past the last, row 22")],
+)
+def test_excluding_a_row_that_holds_no_data_is_refused(tmp_path, row, words):
+    lines = _stage_lines(15)
+    lines.insert(3, "")  # file row 4 is blank
+    p = _write(tmp_path, "\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=f"row {row} is to be excluded.*{words}") as exc:
+        read_stage(p, exclude={row, 5})
+    assert exc.value.row == row

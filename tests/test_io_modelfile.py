@@ -128,7 +128,7 @@ def test_truncated_file(saved):
 
 
 @pytest.mark.parametrize(
-    ("version", "words"), [(2, "newer than this cascal"), (0, "not supported"), ("1", "no integer")]
+    ("version", "words"), [(3, "newer than this cascal"), (0, "not supported"), ("1", "no integer")]
 )
 def test_other_schema_versions_are_refused(saved, version, words):
     _rewrite(saved, lambda d: d.__setitem__("schema_version", version))
@@ -297,3 +297,43 @@ def test_atomic_write_keeps_links_and_writes_pipes_in_place(tmp_path):
     atomic.write_text(fifo, "through the pipe")
     reader.join(timeout=10)
     assert got == ["through the pipe"] and fifo.is_fifo()
+
+
+def test_excluded_rows_are_kept_in_schema_version_2(models, tmp_path):
+    import dataclasses
+
+    model = models["bayes"]
+    sources = (dataclasses.replace(model.sources[0], excluded=(7, 41)), *model.sources[1:])
+    excluded = dataclasses.replace(model, sources=sources)
+    path = save_model(tmp_path / "m.json", excluded)
+    doc = json.loads(path.read_text())
+    assert doc["schema_version"] == 2 == mf.schema_version(excluded)
+    assert doc["provenance"]["inputs"][0]["excluded_rows"] == [7, 41]
+    assert "excluded_rows" not in doc["provenance"]["inputs"][1]
+    loaded = load_model(path)
+    assert loaded.sources == excluded.sources
+    inputs = [model_to_dict(m)["provenance"]["inputs"] for m in (loaded, excluded)]
+    assert inputs[0] == inputs[1]
+    # Version 1 has no place for them: a reader of version 1 could not take this file.
+    with pytest.raises(SchemaError, match="unexpected 'excluded_rows'"):
+        validate(dict(doc, schema_version=1), load_schema("model", 1))
+    # Without exclusions, version 1 as before (older cascal versions read it).
+    assert mf.schema_version(model) == 1
+    _rewrite(path, lambda d: d["provenance"]["inputs"][0].__setitem__("excluded_rows", [41, 7]))
+    with pytest.raises(ModelFileError, match=r"inconsistent model file: .*must increase"):
+        load_model(path)
+
+
+def test_schema_2_is_schema_1_with_the_excluded_rows():
+    one, two = load_schema("model", 1), load_schema("model", 2)
+    items = two["$defs"]["provenance"]["properties"]["inputs"]["items"]["properties"]
+    assert items.pop("excluded_rows")["items"] == {"type": "integer", "minimum": 2}
+    assert two["properties"].pop("schema_version") == {"const": 2}
+    assert one["properties"].pop("schema_version") == {"const": 1}
+    for s in (one, two):
+        for key in ("$id", "title", "description"):
+            s.pop(key)
+        s["$defs"]["provenance"]["properties"]["inputs"]["items"]["properties"]["rows"].pop(
+            "description", None
+        )
+    assert one == two

@@ -141,6 +141,58 @@ def _negative_value(text: str) -> bool:
     return True
 
 
+def rows_text(rows) -> str:
+    """``row 41`` or ``rows 41, 42 and 43``."""
+    rows = [int(r) for r in rows]
+    if len(rows) == 1:
+        return f"row {rows[0]}"
+    return "rows " + ", ".join(map(str, rows[:-1])) + f" and {rows[-1]}"
+
+
+def exclusions(specs: Sequence[str] | None, paths: Sequence[str | Path]) -> list[frozenset[int]]:
+    """Per file of ``paths``, the rows ``--exclude FILE:ROWS`` leaves out. FILE is one of
+    ``paths`` (the same file, or its name alone where that is unique); ROWS are file rows
+    as the warnings name them (the header is row 1): ``41``, ``41,57`` or ``50-52``."""
+    out: list[set[int]] = [set() for _ in paths]
+    for spec in specs or ():
+        file, sep, rows = spec.rpartition(":")
+        if not sep or not file or not rows.strip():
+            raise InputError(
+                f"--exclude {spec}: expected FILE:ROWS, e.g. reference.csv:41 or "
+                "reference.csv:41,50-52"
+            )
+        hits = [i for i, p in enumerate(paths) if same_file(file, p)]
+        hits = hits or [i for i, p in enumerate(paths) if Path(p).name == file]
+        if len(hits) != 1:
+            given = ", ".join(str(p) for p in paths)
+            what = "names several of" if hits else "is none of"
+            raise InputError(f"--exclude {spec}: {file} {what} the stage files ({given})")
+        out[hits[0]] |= _row_numbers(rows, spec)
+    return [frozenset(s) for s in out]
+
+
+def _row_numbers(text: str, spec: str) -> set[int]:
+    """The rows of ``41,57,50-52``; rows count from 1, the header, so data rows from 2."""
+    rows: set[int] = set()
+    for part in text.split(","):
+        lo, dash, hi = part.strip().partition("-")
+        try:
+            a, b = int(lo), int(hi if dash else lo)
+        except ValueError:
+            raise InputError(
+                f"--exclude {spec}: expected row numbers such as 41,57 or 50-52, got {part!r}"
+            ) from None
+        if a > b:
+            raise InputError(f"--exclude {spec}: {part.strip()} is an empty range of rows")
+        if a < 2:
+            raise InputError(
+                f"--exclude {spec}: row {a} is no data row (row 1 is the header, data rows "
+                "start at 2)"
+            )
+        rows.update(range(a, b + 1))
+    return rows
+
+
 def _cmd_fit(args: argparse.Namespace) -> int:
     """Fit stage files (reference end first) and write a model file."""
     from .cli_screening import SKIPPED, report_screening
@@ -220,7 +272,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     files = sorted(folder.glob("*.csv")) if folder.is_dir() else []
     if not files:
         raise InputError(f"no *.csv device files in folder {folder}")
-    (testbed,) = _read_stages([args.testbed], args)
+    skip = exclusions(args.exclude, [args.testbed, *files])
+    (testbed,) = _read_stages([args.testbed], args, skip[:1])
     out = Path(args.output)
     tb = fit_model([testbed], **_fit_kwargs(args))
     tb_model = save_model(out / "testbed.json", tb)
@@ -236,6 +289,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         x_column=_one(args.x_column),
         y_column=_one(args.y_column),
         screening_level=level,
+        exclude={str(f): sorted(e) for f, e in zip(files, skip[1:], strict=True) if e},
     )
 
     t0, done = time.perf_counter(), [0]
@@ -294,20 +348,25 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(Path(args.out), seed=args.seed, main=main)
 
 
-def _read_stages(paths: Sequence[str], args: argparse.Namespace) -> list:
+def _read_stages(
+    paths: Sequence[str], args: argparse.Namespace, skip: list[frozenset[int]] | None = None
+) -> list:
+    """The stage files, with the options' columns, period and excluded rows (``skip``, per
+    file; default from ``--exclude``)."""
     from .io.data import read_stage
 
     n = len(paths)
     xs = _per_file(args.x_column, n, "--x-column")
     ys = _per_file(args.y_column, n, "--y-column")
+    skip = exclusions(args.exclude, paths) if skip is None else skip
     period = args.period if args.kernel == "periodic" else None
     if args.kernel == "periodic" and period is None:
         raise InputError("--kernel periodic needs --period (e.g. --period 360 for degrees)")
     if args.period is not None and not (0 < args.period < float("inf")):
         raise InputError(f"--period: expected a positive number, got {args.period!r}")
     return [
-        read_stage(p, x_column=x, y_column=y, period=period)
-        for p, x, y in zip(paths, xs, ys, strict=True)
+        read_stage(p, x_column=x, y_column=y, period=period, exclude=e)
+        for p, x, y, e in zip(paths, xs, ys, skip, strict=True)
     ]
 
 
@@ -356,7 +415,8 @@ def model_lines(model) -> list[str]:
     ):
         hp = getattr(m, "hyperparameters", {})
         text = ", ".join(f"{name} {v:.4g}" for name, v in hp.items()) or "lookup table"
-        lines.append(f"Stage {k} ({src.file}: {src.rows} rows, {counts.size} points): {text}")
+        left = f", {rows_text(src.excluded)} left out" if src.excluded else ""
+        lines.append(f"Stage {k} ({src.file}: {src.rows} rows{left}, {counts.size} points): {text}")
     lo, hi = model.calibrated_range
     span = f"full turn (period {model.period:g})" if model.periodic else f"[{lo:.9g}, {hi:.9g}]"
     return [*lines, f"Calibrated device range: {span} {model.unit}"]
@@ -448,6 +508,16 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--restarts", type=positive_int, default=5, help="optimiser starts per stage (default 5)"
+    )
+    p.add_argument(
+        "--exclude",
+        action="append",
+        metavar="FILE:ROWS",
+        help=(
+            "leave rows of a stage file out of the fit, e.g. reference.csv:41 or "
+            "device.csv:41,50-52 (file rows as the warnings name them; repeatable); "
+            "recorded in the model file"
+        ),
     )
     screening = p.add_mutually_exclusive_group()
     screening.add_argument(

@@ -27,12 +27,12 @@ def input_status(file: str | Path, sha256: str, base: Path | None = None) -> str
 
 def _cmd_info(args: argparse.Namespace) -> int:
     from .cli import model_lines, warn
-    from .io.modelfile import SCHEMA_VERSION, load_model
+    from .io.modelfile import load_model, schema_version
     from .workflow import summarize_device
 
     model = load_model(args.model)
     n = len(model.fitted.models)
-    print(f"{args.model}: cascal model file, schema {SCHEMA_VERSION}, checksum verified")
+    print(f"{args.model}: cascal model file, schema {schema_version(model)}, checksum verified")
     print(
         f"Fitted {model.created} with cascal {model.cascal_version} (seed {model.seed}, "
         f"{model.n_restarts} optimiser starts per stage)"

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import shlex
+
+from .cli import rows_text
 from .screening import LEVEL, min_points
 from .workflow import StageScreening
 
@@ -11,11 +14,9 @@ __all__ = ["SKIPPED", "report_screening", "screening_lines", "screening_summary"
 SKIPPED = "Outlier screening: skipped (--no-screening)"
 
 
-def _rows(rows) -> str:
-    rows = [int(r) for r in rows]
-    if len(rows) == 1:
-        return f"row {rows[0]}"
-    return "rows " + ", ".join(map(str, rows[:-1])) + f" and {rows[-1]}"
+def _quote(file: str, rows) -> str:
+    """``FILE:ROWS`` of ``--exclude``, quoted for a shell where it needs it."""
+    return shlex.quote(f"{file}:{','.join(str(int(r)) for r in rows)}")
 
 
 def screening_lines(check: StageScreening, unit: str) -> list[str]:
@@ -31,7 +32,7 @@ def screening_lines(check: StageScreening, unit: str) -> list[str]:
         mean = f" (the mean of {c} readings)" if c > 1 else ""
         side = "above" if q.z > 0 else "below"
         lines.append(
-            f"{file} {_rows(rows)}: {yn} {float(data.y[q.index]):.9g}{mean} at {xn} "
+            f"{file} {rows_text(rows)}: {yn} {float(data.y[q.index]):.9g}{mean} at {xn} "
             f"{q.reading:.9g} lies {abs(q.z):.1f} standard deviations {side} what the other "
             f"points predict ({q.target - q.predicted:+.3g} {unit}); check that measurement"
         )
@@ -39,7 +40,7 @@ def screening_lines(check: StageScreening, unit: str) -> list[str]:
         rows = data.raw_rows[s.members] if data.raw_rows is not None else []
         if s.members.size == 2:
             lines.append(
-                f"{file} {_rows(rows)}: the two readings at {xn} {s.reading:.9g} differ "
+                f"{file} {rows_text(rows)}: the two readings at {xn} {s.reading:.9g} differ "
                 f"{s.ratio:.1f} times as much as the other positions' repeats scatter "
                 f"(p = {s.p:.2g}); one of them is suspect"
             )
@@ -47,18 +48,21 @@ def screening_lines(check: StageScreening, unit: str) -> list[str]:
             far = int(data.raw_rows[s.farthest]) if data.raw_rows is not None else s.farthest
             lines.append(
                 f"{file} row {far}: {yn} {float(data.raw_y[s.farthest]):.9g} is the farthest "
-                f"of the {s.members.size} readings at {xn} {s.reading:.9g} ({_rows(rows)}), "
+                f"of the {s.members.size} readings at {xn} {s.reading:.9g} ({rows_text(rows)}), "
                 f"which scatter {s.ratio:.1f} times as much as the other positions' repeats "
-                f"(p = {s.p:.2g}); check that measurement"
+                f"(p = {s.p:.2g}); check that measurement (--exclude {_quote(file, [far])} "
+                "leaves it out)"
             )
     fit = check.fit
     if fit and fit.suspects and fit.noise_std_without != fit.noise_std:
         k = len(fit.suspects)
         which = f"the {k} suspect points" if k > 1 else "the suspect point"
+        rows = sorted(int(r) for q in fit.suspects for r in data.point_rows(q.index))
+        them = "them" if k > 1 else "it"
         lines.append(
             f"{file}: without {which} its learned noise would be {fit.noise_std_without:.3g} "
-            f"{unit} instead of {fit.noise_std:.3g}; remove or re-measure "
-            f"{'them' if k > 1 else 'it'} and fit again"
+            f"{unit} instead of {fit.noise_std:.3g}; re-measure {them}, or leave {them} out "
+            f"with --exclude {_quote(file, rows)}, and fit again"
         )
     if fit and fit.capped:
         lines.append(

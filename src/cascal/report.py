@@ -197,9 +197,17 @@ def build_report(
         _table(["", ""], summary, header=False),
         "<h2>Input files</h2>",
         _table(
-            ["stage", "file", "rows", "points", "columns", "SHA-256"],
+            ["stage", "file", "rows", "rows left out", "points", "columns", "SHA-256"],
             [
-                (str(k), s.file, str(s.rows), str(c.size), ", ".join(s.columns), s.sha256)
+                (
+                    str(k),
+                    s.file,
+                    str(s.rows),
+                    ", ".join(map(str, s.excluded)) or "none",
+                    str(c.size),
+                    ", ".join(s.columns),
+                    s.sha256,
+                )
                 for k, (s, c) in enumerate(zip(model.sources, model.counts, strict=True))
             ],
         ),

@@ -477,6 +477,7 @@ def fit_devices(
         options: ``x_column``, ``y_column`` for the files; ``method``, ``kernel``, ``period``,
             ``unit``, ``n_restarts``, ``seed`` as for :func:`fit_model` (every device gets
             the same seed, so its model equals ``cascal fit TESTBED DEVICE`` with it).
+            ``exclude``: file rows to leave out, by device file path as in ``devices``;
             ``screening_level``: false-alarm level of the outlier screening of each device
             file (default 1 %; None skips it).
         jobs: Worker processes; 1 fits in this process.
@@ -519,6 +520,7 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
             x_column=options.get("x_column"),  # type: ignore[arg-type]
             y_column=options.get("y_column"),  # type: ignore[arg-type]
             period=options.get("period") if options.get("kernel") == "periodic" else None,  # type: ignore[arg-type]
+            exclude=options.get("exclude", {}).get(device, ()),  # type: ignore[attr-defined]
         )
         fit_opts = {
             k: options[k]

@@ -10,7 +10,7 @@ from pathlib import Path
 from cascal.demo import DemoCase
 from cascal.io.csvout import auto_decimals, write_columns
 
-__all__ = ["assert_refused", "run_bad_cases", "run_cascal", "write_case"]
+__all__ = ["assert_refused", "run_bad_cases", "run_cascal", "spoil", "write_case"]
 
 _SCRIPT = Path(sys.executable).with_name("cascal")
 
@@ -60,3 +60,12 @@ def write_case(case: DemoCase, folder: Path) -> tuple[list[Path], Path]:
     readings = folder / "readings.csv"
     write_columns(readings, {"reading": case.readings}, decimals=14)
     return files, readings
+
+
+def spoil(src, dst, changes: dict[int, float]) -> None:
+    """Copy a stage file, adding ``changes[row]`` to the second column of those file rows."""
+    lines = src.read_text().splitlines()
+    for row, delta in changes.items():
+        x, y = lines[row - 1].split(",")
+        lines[row - 1] = f"{x},{float(y) + delta!r}"
+    dst.write_text("\n".join(lines) + "\n")

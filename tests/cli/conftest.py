@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from cli_helpers import run_cascal, write_case
+from cli_helpers import run_cascal, spoil, write_case
 
 from cascal.demo import DemoCase, linear_demo
 
@@ -33,3 +33,15 @@ def linear_model(linear_files) -> Path:
     res = run_cascal("fit", *files, "-o", model)
     assert res.returncode == 0, res.stderr
     return model
+
+
+@pytest.fixture(scope="session")
+def spoiled(linear_files, tmp_path_factory):
+    """The linear case with one reference reading of a repeated position 10 noise standard
+    deviations off (file row 41) and one test-bed value of the device file off (row 101)."""
+    (ref, dev), _ = linear_files
+    tmp = tmp_path_factory.mktemp("spoiled")
+    bad_ref, bad_dev = tmp / "reference_testbed.csv", tmp / "testbed_device.csv"
+    spoil(ref, bad_ref, {41: 1e-3})
+    spoil(dev, bad_dev, {101: 5e-4})
+    return tmp, bad_ref, bad_dev

@@ -88,8 +88,8 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
         "model_truncated": (text[: len(text) // 2], ["truncated"]),
         "model_edited": (text.replace('"unit": "m"', '"unit": "mm"'), ["checksum", "edited"]),
         "model_newer": (
-            text.replace('"schema_version": 1', '"schema_version": 2'),
-            ["schema version 2", "newer", "upgrade cascal"],
+            text.replace('"schema_version": 1', '"schema_version": 3'),
+            ["schema version 3", "newer", "upgrade cascal"],
         ),
         "model_older": (
             text.replace('"schema_version": 1', '"schema_version": 0'),

@@ -7,33 +7,12 @@ import re
 
 import numpy as np
 import pytest
-from cli_helpers import run_cascal
+from cli_helpers import run_cascal, spoil
 
 from cascal.io.data import read_stage
 from cascal.io.modelfile import load_model
 from cascal.screening import screen, screen_repeats
 from cascal.workflow import fit_model, screen_stages
-
-
-def _spoil(src, dst, changes: dict[int, float]) -> None:
-    """Copy a stage file, adding ``changes[row]`` to the second column of those file rows."""
-    lines = src.read_text().splitlines()
-    for row, delta in changes.items():
-        x, y = lines[row - 1].split(",")
-        lines[row - 1] = f"{x},{float(y) + delta!r}"
-    dst.write_text("\n".join(lines) + "\n")
-
-
-@pytest.fixture(scope="module")
-def spoiled(linear_files, tmp_path_factory):
-    """The linear case with one reference reading of a repeated position 10 noise standard
-    deviations off (file row 41) and one test-bed value of the device file off (row 101)."""
-    (ref, dev), _ = linear_files
-    tmp = tmp_path_factory.mktemp("spoiled")
-    bad_ref, bad_dev = tmp / "reference_testbed.csv", tmp / "testbed_device.csv"
-    _spoil(ref, bad_ref, {41: 1e-3})
-    _spoil(dev, bad_dev, {101: 5e-4})
-    return tmp, bad_ref, bad_dev
 
 
 def test_clean_files_have_nothing_suspect(linear_files, tmp_path):
@@ -221,7 +200,7 @@ def test_rotary_outlier_next_to_the_seam_is_named_by_its_row(tmp_path):
     first = float(dev.read_text().splitlines()[1].split(",")[0])
     assert first < 2.0  # the first device reading, a degree past the seam
     bad = tmp_path / "device.csv"
-    _spoil(dev, bad, {2: 3e-3})  # 30 noise standard deviations
+    spoil(dev, bad, {2: 3e-3})  # 30 noise standard deviations
     res = run_cascal("fit", ref, bad, "-o", tmp_path / "m.json", "--kernel", "periodic",
                      "--period", "360", "--unit", "deg")  # fmt: skip
     assert res.returncode == 0, res.stderr

@@ -15,7 +15,7 @@ import hashlib
 import io
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,14 +45,16 @@ class Source:
     Attributes:
         file: The path as given.
         sha256: SHA-256 of the file's bytes, hex.
-        rows: Data rows below the header.
+        rows: Data rows below the header that were read (those excluded not counted).
         columns: Names of the columns used.
+        excluded: File rows left out on request (``--exclude``), increasing.
     """
 
     file: str
     sha256: str
     rows: int
     columns: tuple[str, ...]
+    excluded: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -116,6 +118,7 @@ def read_table(
     hint: str = "",
     min_rows: int = 1,
     max_abs: float | None = None,
+    exclude: Collection[int] = (),
 ) -> Table:
     """Read numeric columns of a CSV file with a header row.
 
@@ -127,6 +130,8 @@ def read_table(
         hint: Appended to the message about missing or extra columns.
         min_rows: Fewest data rows accepted.
         max_abs: If given, values of the wanted columns must lie below it in magnitude.
+        exclude: File rows to leave out (the header is row 1), e.g. a reading known to be
+            bad; their cells are not read. Each must be a data row of the file.
 
     Raises:
         InputError: Naming the file, row and column of the first problem.
@@ -146,13 +151,17 @@ def read_table(
     delim = _delimiter(text)
     header = _header(first, delim, name)
     idx = _pick(header, columns, name, hint)
+    skip = frozenset(int(r) for r in exclude)
     values = rows = None
     if raw.count(b"\n") > _FAST_LINES:
         values = _fast(path, raw, delim, len(header))
         if values is not None:
             rows = np.arange(2, values.shape[0] + 2)
+            _check_excluded(skip, set(range(2, values.shape[0] + 2)), name)
+            keep = ~np.isin(rows, list(skip))
+            values, rows = values[keep], rows[keep]
     if values is None:
-        values, rows = _slow(text, delim, header, idx, name)
+        values, rows = _slow(text, delim, header, idx, name, skip)
     if rows.size < min_rows:
         raise InputError(
             f"expected at least {min_rows} data rows below the header, got {rows.size}",
@@ -171,7 +180,7 @@ def read_table(
                     row=int(rows[big[0]]),
                     column=column,
                 )
-    return Table(cols, rows, Source(name, digest, int(rows.size), names))
+    return Table(cols, rows, Source(name, digest, int(rows.size), names, tuple(sorted(skip))))
 
 
 def read_stage(
@@ -180,6 +189,7 @@ def read_stage(
     x_column: str | None = None,
     y_column: str | None = None,
     period: float | None = None,
+    exclude: Collection[int] = (),
 ) -> StageData:
     """Read a stage file: readings of the calibrated sensor and of the more accurate one.
 
@@ -188,6 +198,7 @@ def read_stage(
         x_column, y_column: Column names; both None: the file's two columns, in order.
         period: For a rotary sensor (periodic kernel), the period: each more accurate
             reading is moved by whole periods to within half a period of its reading.
+        exclude: File rows to leave out (see :func:`read_table`).
 
     Raises:
         InputError: Missing or extra columns, non-numeric or non-finite cells, fewer than
@@ -195,7 +206,7 @@ def read_stage(
             increasing; the message names the file and row.
     """
     hint = "; choose two by name with --x-column and --y-column"
-    table = read_table(path, (x_column, y_column), hint=hint, min_rows=MIN_POINTS)
+    table = read_table(path, (x_column, y_column), hint=hint, min_rows=MIN_POINTS, exclude=exclude)
     name = table.source.file
     x, y = table.columns
     if period is not None:
@@ -346,18 +357,42 @@ def _checked(reader, name: str):
         yield cells
 
 
+def _check_excluded(skip: frozenset[int], data_rows: set[int], name: str) -> None:
+    """Refuse an excluded row that is not a data row of the file."""
+    wrong = sorted(skip - data_rows)
+    if wrong:
+        r, last = wrong[0], max(data_rows, default=1)
+        what = f"past the last, row {last}" if r > last else "blank"
+        if r < 2:
+            what = "the header" if r == 1 else "rows count from 1, the header"
+        raise InputError(
+            f"row {r} is to be excluded, but it is no data row of the file ({what})",
+            file=name,
+            row=r,
+        )
+
+
 def _slow(
-    text: str, delim: str, header: list[str], idx: list[int], name: str
+    text: str,
+    delim: str,
+    header: list[str],
+    idx: list[int],
+    name: str,
+    skip: frozenset[int] = frozenset(),
 ) -> tuple[np.ndarray, np.ndarray]:
     reader = csv.reader(io.StringIO(text), delimiter=delim)
     next(reader)
     out: list[list[float]] = []
     rows: list[int] = []
+    seen: set[int] = set()
     width = len(header)
     for cells in _checked(reader, name):
         row = reader.line_num
         if not cells or all(not c.strip() for c in cells):
             continue  # blank line
+        seen.add(row)
+        if row in skip:
+            continue
         if len(cells) != width:
             what = "missing cells" if len(cells) < width else "extra cells"
             raise InputError(
@@ -373,6 +408,7 @@ def _slow(
             vals.append(_number(cell, name, row, header[j]))
         out.append(vals)
         rows.append(row)
+    _check_excluded(skip, seen, name)
     values = np.array(out, dtype=float).reshape(len(out), width)
     return values, np.array(rows, dtype=np.int64)
 

@@ -1,6 +1,6 @@
 """Model files: a fitted cascade as versioned, checksummed JSON (never pickle).
 
-A model file (schema ``io/schemas/1/model.json``) holds, per stage, the data (averaged
+A model file (schema ``io/schemas/<version>/model.json``) holds, per stage, the data (averaged
 readings, their known noise and counts), the kernel and hyperparameters, and what a
 prediction needs: the training positions, the weights ``alpha`` and the lower Cholesky
 factor ``L`` of the target covariance, stored as computed, so a loaded model predicts the
@@ -37,10 +37,18 @@ from .atomic import write_text
 from .data import Source
 from .schema import SchemaError, load_schema, validate
 
-__all__ = ["SCHEMA_VERSION", "CalibrationModel", "load_model", "model_to_dict", "save_model"]
+__all__ = [
+    "SCHEMA_VERSION",
+    "CalibrationModel",
+    "load_model",
+    "model_to_dict",
+    "save_model",
+    "schema_version",
+]
 
-#: Schema version this cascal writes and reads.
-SCHEMA_VERSION = 1
+#: Newest schema version this cascal writes and reads. A model is written in the oldest
+#: version that holds it (1 unless rows were excluded), so older cascal versions read it.
+SCHEMA_VERSION = 2
 _SCALED = {"SquaredExp": SquaredExp, "Matern32": Matern32, "Matern52": Matern52}
 
 
@@ -118,8 +126,14 @@ def model_to_dict(model: CalibrationModel) -> dict[str, Any]:
             }
         )
     lo, hi = model.calibrated_range
+    inputs = []
+    for s in model.sources:
+        entry = {"file": s.file, "sha256": s.sha256, "rows": s.rows, "columns": list(s.columns)}
+        if s.excluded:
+            entry["excluded_rows"] = [int(r) for r in s.excluded]
+        inputs.append(entry)
     return {
-        "schema_version": SCHEMA_VERSION,
+        "schema_version": schema_version(model),
         "format": "cascal-model",
         "method": model.method,
         "unit": model.unit,
@@ -132,12 +146,15 @@ def model_to_dict(model: CalibrationModel) -> dict[str, Any]:
             "cascal_version": model.cascal_version or _version(),
             "seed": model.seed,
             "n_restarts": int(model.n_restarts),
-            "inputs": [
-                {"file": s.file, "sha256": s.sha256, "rows": s.rows, "columns": list(s.columns)}
-                for s in model.sources
-            ],
+            "inputs": inputs,
         },
     }
+
+
+def schema_version(model: CalibrationModel) -> int:
+    """The schema version ``model`` is written in: 2 where rows of an input file were
+    excluded (``provenance.inputs[].excluded_rows``), else 1."""
+    return 2 if any(s.excluded for s in model.sources) else 1
 
 
 def load_model(path: str | os.PathLike) -> CalibrationModel:
@@ -182,12 +199,11 @@ def _parse(text: str, name: str) -> CalibrationModel:
             f"{name}: checksum mismatch: the file was changed after cascal wrote it "
             "(edited or damaged); fit the model again"
         )
+    version = doc["schema_version"]
     try:
-        validate(doc, load_schema("model", SCHEMA_VERSION))
+        validate(doc, load_schema("model", version))
     except SchemaError as exc:
-        raise ModelFileError(
-            f"{name}: does not match model schema {SCHEMA_VERSION}: {exc}"
-        ) from None
+        raise ModelFileError(f"{name}: does not match model schema {version}: {exc}") from None
     try:
         return _from_dict(doc)
     except (CascalError, ValueError, IndexError) as exc:
@@ -202,10 +218,10 @@ def _check_version(version: Any, name: str) -> None:
             f"{name}: schema version {version} is newer than this cascal ({_version()}) can "
             f"read (version {SCHEMA_VERSION}); upgrade cascal to use this model"
         )
-    if version != SCHEMA_VERSION:
+    if version < 1:
         raise ModelFileError(
-            f"{name}: schema version {version} is not supported (this cascal reads version "
-            f"{SCHEMA_VERSION}); fit the model again with this cascal"
+            f"{name}: schema version {version} is not supported (this cascal reads versions "
+            f"1 to {SCHEMA_VERSION}); fit the model again with this cascal"
         )
 
 
@@ -244,8 +260,19 @@ def _from_dict(doc: dict) -> CalibrationModel:
     prov = doc["provenance"]
     if len(prov["inputs"]) != len(models):
         raise ValueError(f"{len(prov['inputs'])} input files for {len(models)} stages")
+    for i in prov["inputs"]:
+        ex = i.get("excluded_rows", [])
+        if ex != sorted(set(ex)):
+            raise ValueError(f"excluded_rows of {i['file']} must increase")
     sources = tuple(
-        Source(i["file"], i["sha256"], i["rows"], tuple(i["columns"])) for i in prov["inputs"]
+        Source(
+            i["file"],
+            i["sha256"],
+            i["rows"],
+            tuple(i["columns"]),
+            tuple(i.get("excluded_rows", ())),
+        )
+        for i in prov["inputs"]
     )
     return CalibrationModel(
         fitted, tuple(data), tuple(counts), sources, doc["unit"], doc["kernel"],
