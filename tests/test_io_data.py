@@ -176,6 +176,9 @@ def test_values_too_large_are_named_when_a_bound_is_given(tmp_path):
     assert read_table(p, ("a",), max_abs=1e150).columns[0][1] == 3.0  # b not wanted
 
 
+_FAST = data_mod._fast
+
+
 def _stage_lines(n: int, seed: int = 0) -> list[str]:
     """A stage file's lines (header first): n readings, every third position read twice."""
     rng = np.random.default_rng(seed)
@@ -185,7 +188,9 @@ def _stage_lines(n: int, seed: int = 0) -> list[str]:
 
 
 @pytest.mark.parametrize("n", [40, 6000])  # the exact path, and NumPy's fast one
-def test_excluded_rows_read_as_the_file_without_them(tmp_path, n):
+def test_excluded_rows_read_as_the_file_without_them(tmp_path, n, monkeypatch):
+    fast = []
+    monkeypatch.setattr(data_mod, "_fast", lambda *a: fast.append(1) or _FAST(*a))
     lines = _stage_lines(n)
     drop = {2, 3, 17, len(lines)}  # both readings of a repeated position, one, the last
     full = _write(tmp_path, "\n".join(lines) + "\n", "full.csv")
@@ -200,6 +205,10 @@ def test_excluded_rows_read_as_the_file_without_them(tmp_path, n):
     assert (
         b.source.excluded == () and a.source.sha256 == hashlib.sha256(full.read_bytes()).hexdigest()
     )
+    assert len(fast) == (2 if n > data_mod._FAST_LINES else 0)
+    if fast:  # a row past the end, refused on the fast path too
+        with pytest.raises(InputError, match=f"past the last, row {len(lines)}"):
+            read_stage(full, exclude={len(lines) + 1})
 
 
 def test_an_excluded_row_is_not_read(tmp_path):

@@ -14,7 +14,14 @@ from cascal.gp import fit_gp
 from cascal.kernels import SquaredExp
 from cascal.montecarlo import trial_rng
 from cascal.noise import Dense
-from cascal.screening import loo_residuals, min_points, screen, screen_repeats, threshold
+from cascal.screening import (
+    MIN_LEVEL,
+    loo_residuals,
+    min_points,
+    screen,
+    screen_repeats,
+    threshold,
+)
 from cascal.simulation import simulate_trial
 from utils import assert_allclose, dense_lml, se
 
@@ -181,11 +188,15 @@ def test_a_stage_with_more_outliers_than_its_share_stops_there_and_says_so():
     assert all(abs(q.z) > s.threshold for q in s.suspects)
 
 
-@pytest.mark.parametrize("level", [0.0, 1.0, -0.1, float("nan")])
+@pytest.mark.parametrize("level", [0.0, 1.0, -0.1, float("nan"), 1e-13, 1e-322])
 def test_level_must_be_a_probability(level):
     tr = _trial(0)
-    with pytest.raises(ValueError, match="level"):
+    with pytest.raises(ValueError, match=r"level: expected a probability in \[1e-12, 1\)"):
         screen(fit_gp(*tr.d2), level=level)
+    with pytest.raises(ValueError, match="level"):
+        screen_repeats(*tr.d2, level=level)
+    # At the smallest level accepted the thresholds are still finite.
+    assert np.isfinite(threshold(10**6, MIN_LEVEL)) and min_points(MIN_LEVEL) > min_points()
 
 
 def _repeats(rng, positions=40, c=3, sd=1e-4):

@@ -162,17 +162,29 @@ def exclusions(specs: Sequence[str] | None, paths: Sequence[str | Path]) -> list
                 "reference.csv:41,50-52"
             )
         hits = [i for i, p in enumerate(paths) if same_file(file, p)]
-        hits = hits or [i for i, p in enumerate(paths) if Path(p).name == file]
+        if not hits and not Path(file).exists():  # a name alone, or a path from elsewhere
+            hits = [i for i, p in enumerate(paths) if Path(p).name == Path(file).name]
         if len(hits) != 1:
             given = ", ".join(str(p) for p in paths)
             what = "names several of" if hits else "is none of"
             raise InputError(f"--exclude {spec}: {file} {what} the stage files ({given})")
-        out[hits[0]] |= _row_numbers(rows, spec)
+        out[hits[0]] |= _row_numbers(rows, spec, _line_count(paths[hits[0]]))
     return [frozenset(s) for s in out]
 
 
-def _row_numbers(text: str, spec: str) -> set[int]:
-    """The rows of ``41,57,50-52``; rows count from 1, the header, so data rows from 2."""
+def _line_count(path: str | Path) -> int | None:
+    """Lines of a file (LF, CRLF or CR), its last row number; None when it cannot be read
+    (reading it then says why)."""
+    try:
+        raw = Path(path).read_bytes().replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    except OSError:
+        return None
+    return raw.count(b"\n") + (not raw.endswith(b"\n"))
+
+
+def _row_numbers(text: str, spec: str, last: int | None = None) -> set[int]:
+    """The rows of ``41,57,50-52``; rows count from 1, the header, so data rows from 2, and
+    none lies past ``last``."""
     rows: set[int] = set()
     for part in text.split(","):
         lo, dash, hi = part.strip().partition("-")
@@ -188,6 +200,10 @@ def _row_numbers(text: str, spec: str) -> set[int]:
             raise InputError(
                 f"--exclude {spec}: row {a} is no data row (row 1 is the header, data rows "
                 "start at 2)"
+            )
+        if last is not None and b > last:
+            raise InputError(
+                f"--exclude {spec}: row {b} lies past the end of the file (its last row is {last})"
             )
         rows.update(range(a, b + 1))
     return rows
@@ -562,14 +578,16 @@ def seed(text: str) -> int:
 
 
 def probability(text: str) -> float:
-    """argparse type: a probability strictly between 0 and 1."""
+    """argparse type: a false-alarm probability, from the screening's smallest to below 1."""
+    from .screening import MIN_LEVEL
+
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not 0.0 < value < 1.0:
+    if not MIN_LEVEL <= value < 1.0:
         raise argparse.ArgumentTypeError(
-            f"expected a probability between 0 and 1, got {text}"
+            f"expected a probability from {MIN_LEVEL:g} to below 1, got {text}"
             + (" (--no-screening turns the screening off)" if value == 0 else "")
         )
     return value

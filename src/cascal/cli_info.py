@@ -5,34 +5,38 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 from pathlib import Path
 
 __all__ = ["add_info_parser", "input_status"]
 
 
-def input_status(file: str | Path, sha256: str, base: Path | None = None) -> str:
-    """``"unchanged"``, ``"changed since the fit"`` or ``"not found"``: the file a model
-    names against the SHA-256 recorded for it. The path is as given to the fit; a relative
-    one is looked up from here, then from ``base`` (the model file's folder), then its name
-    alone in ``base``."""
+def input_status(
+    file: str | Path, sha256: str, base: Path | None = None
+) -> tuple[str, Path | None]:
+    """``"unchanged"``, ``"changed since the fit"`` or ``"not found"``, and the path
+    checked: the file a model names against the SHA-256 recorded for it. The path is as
+    given to the fit; a relative one is looked for from here, from ``base`` (the model
+    file's folder) and by its name alone in ``base``, and any of them that matches counts."""
     candidates = [Path(file)]
     if base is not None and not Path(file).is_absolute():
         candidates += [base / file, base / Path(file).name]
-    for path in candidates:
-        if path.is_file():
-            digest = hashlib.sha256(path.read_bytes()).hexdigest()
-            return "unchanged" if digest == sha256 else "changed since the fit"
-    return "not found"
+    found = [p for p in dict.fromkeys(candidates) if p.is_file()]
+    for path in found:
+        if hashlib.sha256(path.read_bytes()).hexdigest() == sha256:
+            return "unchanged", path
+    return ("changed since the fit", found[0]) if found else ("not found", None)
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
     from .cli import model_lines, warn
-    from .io.modelfile import load_model, schema_version
+    from .io.modelfile import load_model
     from .workflow import summarize_device
 
     model = load_model(args.model)
     n = len(model.fitted.models)
-    print(f"{args.model}: cascal model file, schema {schema_version(model)}, checksum verified")
+    version = json.loads(Path(args.model).read_text(encoding="utf-8"))["schema_version"]
+    print(f"{args.model}: cascal model file, schema {version}, checksum verified")
     print(
         f"Fitted {model.created} with cascal {model.cascal_version} (seed {model.seed}, "
         f"{model.n_restarts} optimiser starts per stage)"
@@ -50,10 +54,11 @@ def _cmd_info(args: argparse.Namespace) -> int:
         if lml is not None:
             jitter = f"jitter {gp.jitter:.3g}" if gp.jitter else "no jitter"
             print(f"  log marginal likelihood {lml:.6g}, {jitter}")
-        status = input_status(src.file, src.sha256, Path(args.model).parent)
-        print(f"  input {src.file} (columns {', '.join(src.columns)}): {status}")
+        status, path = input_status(src.file, src.sha256, Path(args.model).parent)
+        where = f" (as {path})" if path is not None and str(path) != src.file else ""
+        print(f"  input {src.file} (columns {', '.join(src.columns)}): {status}{where}")
         if status == "changed since the fit":
-            changed.append(src.file)
+            changed.append(str(path))
     s = summarize_device(model)
     u = s["max_u"]
     largest = "no uncertainty (lookup tables)" if u != u else f"largest u {u:.3g} {model.unit}"

@@ -34,6 +34,9 @@ from .noise import Dense, Diagonal, Noise
 from .validation import MIN_POINTS, aggregate_repeats
 
 __all__ = [
+    "LEVEL",
+    "MAX_FRACTION",
+    "MIN_LEVEL",
     "Screening",
     "Spread",
     "Suspect",
@@ -46,6 +49,8 @@ __all__ = [
 
 #: Default family-wise false-alarm probability per stage.
 LEVEL = 0.01
+#: Smallest level accepted (below it the thresholds' tail probabilities underflow).
+MIN_LEVEL = 1e-12
 #: Default largest share of a stage's points taken out as suspects.
 MAX_FRACTION = 0.1
 #: A refit's white-noise variance is searched down to this factor (log) below the fit's.
@@ -102,6 +107,11 @@ class Screening:
     detectable: bool = True
 
 
+def _check_level(level: float) -> None:
+    if not MIN_LEVEL <= level < 1.0:
+        raise InputError(f"level: expected a probability in [{MIN_LEVEL:g}, 1), got {level!r}")
+
+
 def threshold(n: int, level: float = LEVEL) -> float:
     """|z| above which one of ``n`` standard normals is suspect at family-wise ``level``
     (two-sided, Bonferroni): 3.78 for 64 points at 1 %, 4.56 for 2000."""
@@ -142,8 +152,7 @@ def screen(gp: FittedGP, *, level: float = LEVEL, max_fraction: float = MAX_FRAC
         level: Family-wise false-alarm probability of each round (default 1 %).
         max_fraction: Take out at most this share of the points (at least one).
     """
-    if not 0.0 < level < 1.0:
-        raise InputError(f"level: expected a probability in (0, 1), got {level!r}")
+    _check_level(level)
     n = gp.x.size
     residual, std = loo_residuals(gp)
     z0 = residual / std
@@ -266,8 +275,7 @@ def screen_repeats(
         level: Family-wise false-alarm probability of each round (default 1 %).
         max_fraction: Stop after this share of the repeated positions (at least one).
     """
-    if not 0.0 < level < 1.0:
-        raise InputError(f"level: expected a probability in (0, 1), got {level!r}")
+    _check_level(level)
     rep = aggregate_repeats(x, y)
     y = np.asarray(y, dtype=float)
     ux, inverse, counts = rep.x, rep.inverse, rep.counts

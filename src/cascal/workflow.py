@@ -487,8 +487,14 @@ def fit_devices(
         One result per device, in the order of ``devices``; a bad device file has
         ``error`` set and no model, the others complete.
     """
+    exclude = {str(Path(k)): v for k, v in dict(options.get("exclude") or {}).items()}  # type: ignore[call-overload]
+    unknown = sorted(set(exclude) - {str(Path(d)) for d in devices})
+    if unknown:
+        raise InputError(f"exclude: {unknown[0]} is none of the device files")
+    options = dict(options, exclude=exclude)
     jobs_args = [
-        (str(testbed), str(d), str(Path(outdir) / f"{Path(d).stem}.json"), options) for d in devices
+        (str(testbed), str(Path(d)), str(Path(outdir) / f"{Path(d).stem}.json"), options)
+        for d in devices
     ]
     results: dict[int, DeviceResult] = {}
 

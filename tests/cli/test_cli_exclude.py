@@ -76,7 +76,7 @@ def test_fit_devices_leaves_rows_of_the_test_bed_and_of_a_device_out(spoiled, li
     (folder / "b.csv").write_text(bad_dev.read_text())
     res = run_cascal("fit-devices", bad_ref, "--devices", folder, "-o", tmp / "fleet_ex",
                      "--exclude", f"{bad_ref.name}:41", "--exclude", "b.csv:101,102-103",
-                     "--jobs", "1")  # fmt: skip
+                     "--jobs", "2")  # fmt: skip
     assert res.returncode == 0, res.stderr
     assert res.stderr == ""
     tb = load_model(tmp / "fleet_ex" / "testbed.json")
@@ -97,7 +97,10 @@ def test_fit_devices_leaves_rows_of_the_test_bed_and_of_a_device_out(spoiled, li
         ("reference_testbed.csv:1", "row 1 is no data row (row 1 is the header"),
         ("reference_testbed.csv:9-5", "9-5 is an empty range"),
         ("reference_testbed.csv:4,x", "expected row numbers such as 41,57 or 50-52, got 'x'"),
-        ("reference_testbed.csv:999", "row 999: row 999 is to be excluded, but it is no data row"),
+        (
+            "reference_testbed.csv:999",
+            "row 999 lies past the end of the file (its last row is 130)",
+        ),
     ],
 )
 def test_a_bad_exclusion_is_refused(spec, words, linear_files, tmp_path):
@@ -116,6 +119,62 @@ def test_a_name_two_stage_files_share_must_be_a_path(linear_files, tmp_path):
     res = run_cascal("fit-devices", files[0], "--devices", other, "-o", tmp_path / "f",
                      "--exclude", f"{files[1].name}:5")  # fmt: skip
     assert res.returncode == 0, res.stderr  # only the device file has that name
+    device = load_model(tmp_path / "f" / "devices" / f"{twin.stem}.json")
+    assert device.sources[1].excluded == (5,)
     res = run_cascal("fit", files[1], twin, "-o", tmp_path / "m.json",
                      "--exclude", f"{files[1].name}:5")  # fmt: skip
     assert res.returncode == 2 and "names several of the stage files" in res.stderr
+
+
+def test_a_row_range_is_checked_against_the_file_before_it_is_counted(linear_files, tmp_path):
+    files, _ = linear_files
+    ref = files[0]
+    res = run_cascal("fit", *files, "-o", tmp_path / "m.json",
+                     "--exclude", f"{ref.name}:2-100000000000")  # fmt: skip
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    last = len(ref.read_text().splitlines())
+    assert f"row 100000000000 lies past the end of the file (its last row is {last})" in (
+        res.stderr
+    )
+
+
+def test_fit_devices_refuses_a_device_row_past_the_end_before_any_fit(spoiled, linear_files):
+    tmp, bad_ref, bad_dev = spoiled
+    folder = tmp / "devices_past"
+    folder.mkdir()
+    (folder / "b.csv").write_text(bad_dev.read_text())
+    out = tmp / "fleet_past"
+    res = run_cascal("fit-devices", bad_ref, "--devices", folder, "-o", out,
+                     "--exclude", "b.csv:999")  # fmt: skip
+    assert res.returncode == 2 and "row 999 lies past the end of the file" in res.stderr
+    assert not (out / "testbed.json").exists()
+
+
+def test_an_existing_file_that_is_no_stage_file_is_refused(linear_files, tmp_path, monkeypatch):
+    files, _ = linear_files
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / files[0].name).write_text(files[0].read_text())  # same name, not an input
+    res = run_cascal("fit", *files, "-o", "m.json", "--exclude", f"{files[0].name}:41")
+    assert res.returncode == 2
+    assert f"--exclude {files[0].name}:41: {files[0].name} is none of the stage files" in (
+        res.stderr
+    )
+
+
+def test_fit_devices_library_matches_exclusions_by_path(spoiled, tmp_path):
+    from pathlib import Path
+
+    from cascal.errors import InputError
+    from cascal.io.modelfile import save_model
+    from cascal.workflow import fit_devices
+
+    _, bad_ref, bad_dev = spoiled
+    testbed = save_model(tmp_path / "tb.json", fit_model([read_stage(bad_ref)]))
+    device = tmp_path / "b.csv"
+    device.write_text(bad_dev.read_text())
+    key = Path(f"{tmp_path}/./b.csv")  # another spelling of the same path
+    (r,) = fit_devices(testbed, [str(device)], tmp_path / "out", options={"exclude": {key: [101]}})
+    assert r.error is None and r.points == 199
+    assert load_model(r.model).sources[1].excluded == (101,)
+    with pytest.raises(InputError, match=r"c\.csv is none of the device files"):
+        fit_devices(testbed, [device], tmp_path / "out", options={"exclude": {"c.csv": [5]}})

@@ -67,11 +67,29 @@ def test_input_status_looks_beside_the_model(tmp_path):
     f = folder / "stage.csv"
     f.write_text("a,b\n1,2\n")
     digest = hashlib.sha256(f.read_bytes()).hexdigest()
-    assert input_status(f, digest) == "unchanged"
-    assert input_status(f, "0" * 64) == "changed since the fit"
+    assert input_status(f, digest) == ("unchanged", f)
+    assert input_status(f, "0" * 64) == ("changed since the fit", f)
     # A relative path from the fit's folder: found by its name beside the model.
-    assert input_status("elsewhere/stage.csv", digest) == "not found"
-    assert input_status("elsewhere/stage.csv", digest, base=folder) == "unchanged"
+    assert input_status("elsewhere/stage.csv", digest) == ("not found", None)
+    assert input_status("elsewhere/stage.csv", digest, base=folder) == ("unchanged", f)
+
+
+def test_info_takes_the_unchanged_file_beside_the_model(linear_files, tmp_path, monkeypatch):
+    files, _ = linear_files
+    fitted, other = tmp_path / "fitted", tmp_path / "other"
+    fitted.mkdir(), other.mkdir()
+    for f in files:
+        shutil.copy(f, fitted / f.name)
+        (other / f.name).write_text(f.read_text() + "0.5,0.5\n")  # same names, other files
+    monkeypatch.chdir(fitted)
+    names = [f.name for f in files]
+    assert run_cascal("fit", *names, "-o", "m.json", "--method", "lut").returncode == 0
+    monkeypatch.chdir(other)  # relative paths from here name the other files
+    res = run_cascal("info", "../fitted/m.json")
+    assert res.returncode == 0 and res.stderr == ""
+    for name in names:
+        assert f"  input {name} " in res.stdout
+        assert f"unchanged (as ../fitted/{name})" in res.stdout
 
 
 def test_info_refuses_a_damaged_model(linear_model, tmp_path):

@@ -263,9 +263,10 @@ def test_fit_devices_screens_at_the_level_given_or_not_at_all(spoiled, linear_fi
 @pytest.mark.parametrize(
     ("value", "words"),
     [
-        ("0", "between 0 and 1, got 0 (--no-screening turns the screening off)"),
-        ("1", "between 0 and 1, got 1"),
-        ("nan", "between 0 and 1, got nan"),
+        ("0", "from 1e-12 to below 1, got 0 (--no-screening turns the screening off)"),
+        ("1", "from 1e-12 to below 1, got 1"),
+        ("nan", "from 1e-12 to below 1, got nan"),
+        ("1e-322", "from 1e-12 to below 1, got 1e-322"),  # its tail probabilities underflow
         ("often", "expected a number, got 'often'"),
     ],
 )

@@ -163,8 +163,9 @@ def read_table(
     if values is None:
         values, rows = _slow(text, delim, header, idx, name, skip)
     if rows.size < min_rows:
+        left = f" ({len(skip)} excluded)" if skip else ""
         raise InputError(
-            f"expected at least {min_rows} data rows below the header, got {rows.size}",
+            f"expected at least {min_rows} data rows below the header, got {rows.size}{left}",
             file=name,
             row=int(rows[-1]) if rows.size else 1,
         )
@@ -225,7 +226,8 @@ def read_stage(
     if rep.x.size < MIN_POINTS:
         raise InputError(
             f"expected readings at {MIN_POINTS} or more distinct positions in column "
-            f"{table.source.columns[0]!r}, got {rep.x.size}",
+            f"{table.source.columns[0]!r}, got {rep.x.size}"
+            + (f" ({len(table.source.excluded)} rows excluded)" if table.source.excluded else ""),
             file=name,
             row=int(table.rows[-1]),
         )
@@ -362,7 +364,7 @@ def _check_excluded(skip: frozenset[int], data_rows: set[int], name: str) -> Non
     wrong = sorted(skip - data_rows)
     if wrong:
         r, last = wrong[0], max(data_rows, default=1)
-        what = f"past the last, row {last}" if r > last else "blank"
+        what = f"past the last, row {last}" if r > last else "blank, or inside a quoted cell"
         if r < 2:
             what = "the header" if r == 1 else "rows count from 1, the header"
         raise InputError(
