@@ -109,7 +109,15 @@ def same_file(a: str | Path, b: str | Path) -> bool:
 
 
 #: Options that take a number, whose value may start with a minus sign (see join_negative).
-NUMBER_OPTIONS = ("--noise-std", "--reading-u", "--reference-u", "--mpe", "--tolerance", "--period")
+NUMBER_OPTIONS = (
+    "--noise-std",
+    "--reading-u",
+    "--reference-u",
+    "--mpe",
+    "--tolerance",
+    "--period",
+    "--max-change",
+)
 
 
 def join_negative(argv: list[str]) -> list[str]:
@@ -678,6 +686,7 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=seed, default=0, help="seed of the simulation (default 0)")
     demo.set_defaults(func=_cmd_demo)
 
+    from .cli_compare import add_compare_parser
     from .cli_export import add_export_parser
     from .cli_info import add_info_parser
     from .cli_plan import add_plan_parser
@@ -685,6 +694,7 @@ def _parser() -> argparse.ArgumentParser:
     from .cli_verify import add_verify_parser
 
     add_export_parser(sub)
+    add_compare_parser(sub)
     add_info_parser(sub)
     add_plan_parser(sub)
     add_verify_parser(sub)

@@ -180,6 +180,14 @@ class FittedGP:
                 std[s : s + rows] = np.sqrt(np.clip(var, 0.0, None))
         return (mean, std) if std is not None else mean
 
+    def cross_covariance(self, a: object, b: object) -> np.ndarray:
+        """Posterior covariance (m, p) of the latent map between positions ``a`` (m,) and
+        ``b`` (p,): ``k(a, b) - k(a, X) (K + noise)^-1 k(X, b)``."""
+        xa, xb = as_positions(a, "a"), as_positions(b, "b")
+        Va = solve_triangular(self.L, self.kernel(self.x, xa), lower=True, check_finite=False)
+        Vb = solve_triangular(self.L, self.kernel(self.x, xb), lower=True, check_finite=False)
+        return self.kernel(xa, xb) - Va.T @ Vb
+
     def posterior(self, x: object) -> Posterior:
         """Posterior mean (m,) and full covariance (m, m) of the latent map at ``x``."""
         mean, cov = self.predict(x, return_cov=True)

@@ -13,9 +13,16 @@ from matplotlib.figure import Figure
 from .cascade import FittedCascade
 from .gp import Z95, FittedGP
 from .planning import Plan, variance_after
-from .verification import Verification
+from .verification import Comparison, Verification
 
-__all__ = ["plot_cascade", "plot_cost_distribution", "plot_plan", "plot_stage", "plot_verification"]
+__all__ = [
+    "plot_cascade",
+    "plot_change",
+    "plot_cost_distribution",
+    "plot_plan",
+    "plot_stage",
+    "plot_verification",
+]
 
 #: A plan's figure numbers this many of its first proposals.
 _NUMBERED = 12
@@ -303,6 +310,49 @@ def plot_verification(
     ax.set_ylabel(f"corrected - reference [{unit}]")
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=5, frameon=False)
+    return fig
+
+
+def plot_change(
+    c: Comparison,
+    *,
+    fig: Figure | None = None,
+    scale: float = 1.0,
+    unit: str = "m",
+    xunit: str = "m",
+    names: tuple[str, str] = ("old", "new"),
+) -> Figure:
+    """A recalibration's change of the correction against the reading, with the expanded
+    uncertainty ``k u`` of the change as a band and the readings beyond it marked.
+
+    Args:
+        c: The comparison of :func:`cascal.verification.compare`.
+        scale, unit: Display scale of the change; ``xunit`` of readings.
+        names: What to call the two calibrations.
+    """
+    if fig is None:
+        fig = Figure(figsize=(7.5, 3.6), layout="constrained")
+    ax = fig.subplots()
+    r, d = c.reading, c.change * scale
+    if c.has_u:
+        band = c.k * c.u * scale
+        ax.fill_between(r, -band, band, color="C0", alpha=0.2, lw=0, label=f"±U (k = {c.k:g})")
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.plot(r, d, "-", color="C0", lw=1.2, label="change of the correction")
+    s = c.summary()
+    title = (
+        f"RMS change {s['rms_change'] * scale:.3g} {unit}, "
+        f"largest {s['max_change'] * scale:.3g} {unit}"
+    )
+    if c.has_u:
+        beyond = np.where(c.en > 1.0, d, np.nan)
+        if np.any(c.en > 1.0):
+            ax.plot(r, beyond, "-", color="C3", lw=2, label="beyond ±U")
+        title += f"; beyond ±U over {100 * s['share_beyond_U']:.1f} % of the range"
+    ax.set_xlabel(f"device reading [{xunit}]")
+    ax.set_ylabel(f"{names[1]} - {names[0]} [{unit}]")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=3, frameon=False)
     return fig
 
 

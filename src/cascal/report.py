@@ -19,14 +19,15 @@ from ._version import __version__
 from .errors import CascalError
 from .gp import Z95
 from .io.modelfile import CalibrationModel
-from .plots import plot_plan, plot_verification
+from .plots import plot_change, plot_plan, plot_verification
 from .reportdata import CurveView, StageView, correction_curve, stage_views
 from .screening import LEVEL, Screening
-from .verification import Verification
+from .verification import Comparison, Verification
 from .workflow import MeasurementPlan, plan_measurements
 
 __all__ = [
     "build_report",
+    "comparison_figure",
     "correction_figure",
     "display_scale",
     "plan_figure",
@@ -353,6 +354,13 @@ def verification_figure(model: CalibrationModel, v: Verification) -> Figure:
     e = v.error[v.inside]
     scale, shown = display_scale(model.unit, float(np.max(np.abs(e))) if e.size else 0.0)
     return plot_verification(v, scale=scale, unit=shown, xunit=model.unit)
+
+
+def comparison_figure(model: CalibrationModel, c: Comparison, names: tuple[str, str]) -> Figure:
+    """The figure of a recalibration's change (``model``: either of the two), in readable
+    units."""
+    scale, shown = display_scale(model.unit, float(np.max(np.abs(c.change))))
+    return plot_change(c, scale=scale, unit=shown, xunit=model.unit, names=names)
 
 
 _CSS = (

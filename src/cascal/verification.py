@@ -9,6 +9,10 @@ uncertainty is right (fewer can occur by chance: neighbouring points share the c
 error). Against a maximum permissible error (MPE), a point conforms when
 ``|error| + k u_reference <= MPE``: the error, enlarged by the expanded uncertainty of the
 check itself, stays within the limit (the rule of ISO 14253-1 for proving conformance).
+A recalibration is compared with the calibration before it (:func:`compare`) on a grid of
+readings: the change of the correction, and ``En = |change| / (k u)`` with ``u`` the
+standard uncertainty the change would have if the device had not changed (see
+:func:`cascal.workflow.change_std`).
 Pure numerics: no files, no printing.
 """
 
@@ -19,7 +23,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["COVERAGE_FACTOR", "Verification", "expected_within", "verify"]
+__all__ = [
+    "COVERAGE_FACTOR",
+    "Comparison",
+    "Verification",
+    "compare",
+    "expected_within",
+    "verify",
+]
 
 #: Coverage factor of the expanded uncertainty U = k u (about 95 % for a normal law, GUM).
 COVERAGE_FACTOR = 2.0
@@ -169,6 +180,95 @@ def verify(
         float(k),
         None if period is None else float(period),
     )
+
+
+@dataclass(frozen=True, slots=True)
+class Comparison:
+    """Two calibrations' corrections on one grid of device readings.
+
+    Attributes:
+        reading: Device readings, increasing, shape (n,).
+        old, new: Corrected readings of the earlier and the later calibration, shape (n,).
+        change: ``new - old`` (for a rotary model the shortest way round), shape (n,).
+        u_old, u_new: Their standard uncertainties, shape (n,); NaN for lookup tables.
+        u: Standard uncertainty of the change were the device unchanged, shape (n,).
+        shared: Whether ``u`` counts an upstream calibration both share.
+        k: Coverage factor.
+        period: A rotary model's period, or None.
+    """
+
+    reading: np.ndarray
+    old: np.ndarray
+    new: np.ndarray
+    change: np.ndarray
+    u_old: np.ndarray
+    u_new: np.ndarray
+    u: np.ndarray
+    shared: bool = False
+    k: float = COVERAGE_FACTOR
+    period: float | None = None
+
+    @property
+    def en(self) -> np.ndarray:
+        """``|change| / (k u)``, shape (n,) (0 where the change is 0); NaN without u."""
+        c = np.abs(self.change)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(c == 0.0, 0.0 * self.u, c / (self.k * self.u))
+
+    @property
+    def has_u(self) -> bool:
+        """Whether the change has an uncertainty (neither model is a lookup table)."""
+        return not np.any(np.isnan(self.u))
+
+    def summary(self) -> dict[str, float | None]:
+        """RMS and largest |change| and the reading of the largest; the share of the grid
+        where ``En > 1``, the largest En and its reading (None without u)."""
+        i = int(np.argmax(np.abs(self.change)))
+        out: dict[str, float | None] = {
+            "rms_change": _rms(self.change),
+            "max_change": float(abs(self.change[i])),
+            "at": float(self.reading[i]),
+            "share_beyond_U": None,
+            "max_en": None,
+            "max_en_at": None,
+        }
+        if self.has_u:
+            en = self.en
+            j = int(np.argmax(en))
+            out["share_beyond_U"] = float(np.mean(en > 1.0))
+            out["max_en"], out["max_en_at"] = float(en[j]), float(self.reading[j])
+        return out
+
+
+def compare(
+    reading: np.ndarray,
+    old: np.ndarray,
+    u_old: np.ndarray,
+    new: np.ndarray,
+    u_new: np.ndarray,
+    *,
+    u_change: np.ndarray | None = None,
+    shared: bool = False,
+    period: float | None = None,
+    k: float = COVERAGE_FACTOR,
+) -> Comparison:
+    """Compare two calibrations' corrected readings (n,) and their standard uncertainties
+    (n,) at the same device readings (n,). ``u_change``: the change's standard uncertainty
+    (n,), by default that of two independent errors, ``hypot(u_old, u_new)``; ``shared``:
+    whether it counts a shared upstream calibration; ``period``: changes are taken the
+    shortest way round."""
+    arrays = [np.asarray(a, dtype=float) for a in (reading, old, u_old, new, u_new)]
+    arrays.append(
+        np.hypot(arrays[2], arrays[4]) if u_change is None else np.asarray(u_change, float)
+    )
+    n = arrays[0].shape
+    if any(a.ndim != 1 or a.shape != n for a in arrays) or not n[0]:
+        raise ValueError("compare: expected six non-empty arrays of one shape (n,)")
+    if not (0.0 < k < math.inf):
+        raise ValueError(f"compare: k must be a finite number > 0, got {k!r}")
+    r, a, ua, b, ub, uc = arrays
+    p = None if period is None else float(period)
+    return Comparison(r, a, b, _difference(b, a, p), ua, ub, uc, bool(shared), float(k), p)
 
 
 def _difference(a: np.ndarray, b: np.ndarray, period: float | None) -> np.ndarray:

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.linalg import solve_triangular
 
 from .cascade import Cascade
 from .compensation import MAX_NODES, CompensationTable, compensation_table
@@ -27,7 +28,7 @@ from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
 from .screening import LEVEL, Screening, Spread, screen, screen_repeats
 from .tabulate import predict_many
-from .verification import COVERAGE_FACTOR, Verification, verify
+from .verification import COVERAGE_FACTOR, Comparison, Verification, compare, verify
 
 __all__ = [
     "COVERAGE_FACTOR",
@@ -35,12 +36,15 @@ __all__ = [
     "DeviceResult",
     "MeasurementPlan",
     "StageScreening",
+    "change_std",
+    "compare_models",
     "compensation",
     "correct",
     "fit_devices",
     "fit_model",
     "plan_measurements",
     "screen_stages",
+    "shares_upstream",
     "summarize_device",
     "verify_model",
 ]
@@ -240,6 +244,118 @@ def correct(model: CalibrationModel, readings: object) -> Correction:
     else:
         corrected, u = device(r), np.full(r.shape, np.nan)
     return Correction(r, corrected, u, out)
+
+
+def compare_models(
+    old: CalibrationModel, new: CalibrationModel, *, n: int = _SUMMARY_GRID
+) -> Comparison:
+    """Compare a recalibration ``new`` with the calibration ``old`` of the same device on
+    ``n`` equally spaced readings of their common calibrated range (one turn for periodic
+    models): the change and, for GP models, :func:`change_std`.
+
+    Raises:
+        InputError: The models differ in unit, period or number of stages, or their
+            ranges do not overlap.
+    """
+    if old.unit != new.unit:
+        raise InputError(f"the models are in different units ({old.unit!r} and {new.unit!r})")
+    if old.period != new.period:
+        what = [f"period {m.period:g}" if m.periodic else "not periodic" for m in (old, new)]
+        raise InputError(f"the models differ in their period ({what[0]} and {what[1]})")
+    na, nb = len(old.fitted.models), len(new.fitted.models)
+    if na != nb:
+        raise InputError(
+            f"the models have {na} and {nb} stages: compare two calibrations of one device "
+            "along the same chain"
+        )
+    if old.periodic:
+        grid = np.linspace(0.0, float(old.period), n, endpoint=False)  # type: ignore[arg-type]
+    else:
+        (lo_a, hi_a), (lo_b, hi_b) = old.calibrated_range, new.calibrated_range
+        lo, hi = max(lo_a, lo_b), min(hi_a, hi_b)
+        if not lo < hi:
+            raise InputError(
+                f"the calibrated ranges [{lo_a:.9g}, {hi_a:.9g}] and [{lo_b:.9g}, {hi_b:.9g}] "
+                f"{old.unit} do not overlap: nothing to compare"
+            )
+        grid = np.linspace(lo, hi, n)
+    a, b = correct(old, grid), correct(new, grid)
+    shared = shares_upstream(old, new)
+    u = None
+    if isinstance(old.fitted.device, FittedGP) and isinstance(new.fitted.device, FittedGP):
+        u = change_std(old, new, grid, shared=shared)
+    return compare(
+        grid, a.corrected, a.u, b.corrected, b.u, u_change=u, shared=shared, period=old.period
+    )
+
+
+def shares_upstream(a: CalibrationModel, b: CalibrationModel, *, rtol: float = 1e-6) -> bool:
+    """Whether two ``bayes`` models hold the same stages above their device stage: the same
+    data and, within ``rtol``, the same hyperparameters (one test-bed calibration, fitted
+    once or again by another cascal version), whose error is then part of both devices'."""
+    ma, mb = a.fitted.models, b.fitted.models
+    if a.method != "bayes" or b.method != "bayes" or len(ma) != len(mb) or len(ma) < 2:
+        return False
+    for k in range(len(ma) - 1):
+        da, db = a.data[k], b.data[k]
+        ha, hb = ma[k].hyperparameters, mb[k].hyperparameters  # type: ignore[union-attr]
+        same = (
+            np.array_equal(da.x, db.x)
+            and np.array_equal(da.y, db.y)
+            and (da.noise is None) == (db.noise is None)
+            and (da.noise is None or np.array_equal(da.noise, db.noise))
+            and ha.keys() == hb.keys()
+            and all(np.isclose(ha[h], hb[h], rtol=rtol, atol=0.0) for h in ha)
+        )
+        if not same:
+            return False
+    return True
+
+
+def change_std(
+    old: CalibrationModel, new: CalibrationModel, readings: object, *, shared: bool = False
+) -> np.ndarray:
+    """Standard uncertainty (m,) that the change ``new - old`` of two GP models' corrections
+    at device readings (m,) would have if the device had not changed.
+
+    Each correction is its device GP's mean, ``m(r) + w^T (t - m(X))`` with weights
+    ``w = (K + Sigma + s^2 I)^-1 k(X, r)``; under that hypothesis both estimate one device
+    map, so the change is ``v^T e`` with ``v = [-w_old; w_new]`` and ``e`` the two target
+    vectors' deviations from it: the map at both sets of readings (prior covariance of the
+    old fit's kernel), each fit's known noise Sigma and white noise, and, with ``shared``
+    (:func:`shares_upstream`), the covariance between the two device files' upper readings
+    of the upstream stage both were fitted below. ``u^2 = v^T C v``, PSD by construction.
+    """
+    r = np.asarray(readings, dtype=float)
+    ga, gb = old.fitted.device, new.fitted.device
+    if not (isinstance(ga, FittedGP) and isinstance(gb, FittedGP)):
+        raise InputError("change_std: both models need a GP device stage")
+    x = np.concatenate([ga.x, gb.x])
+    na = ga.x.size
+    C = ga.kernel(x)  # the device map, one and the same under the hypothesis
+    C[:na, :na] += _noise_dense(ga)
+    C[na:, na:] += _noise_dense(gb)
+    C[np.diag_indices_from(C)] += np.r_[
+        np.full(na, ga.noise_variance), np.full(gb.x.size, gb.noise_variance)
+    ]
+    if shared:
+        up = old.fitted.models[-2]
+        S = up.cross_covariance(old.data[-1].y, new.data[-1].y)  # type: ignore[union-attr]
+        C[:na, na:] += S
+        C[na:, :na] += S.T
+    v = np.concatenate([-_weights(ga, r), _weights(gb, r)])
+    return np.sqrt(np.clip(np.sum(v * (C @ v), axis=0), 0.0, None))
+
+
+def _noise_dense(gp: FittedGP) -> np.ndarray:
+    n = gp.x.size
+    return np.zeros((n, n)) if gp.noise is None else gp.noise.dense(n)
+
+
+def _weights(gp: FittedGP, r: np.ndarray) -> np.ndarray:
+    """``(K + noise)^-1 k(X, r)``, shape (n, m): each target's weight in the mean at r."""
+    V = solve_triangular(gp.L, gp.kernel(gp.x, r), lower=True, check_finite=False)
+    return solve_triangular(gp.L.T, V, lower=False, check_finite=False)
 
 
 def verify_model(

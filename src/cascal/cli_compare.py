@@ -1,0 +1,129 @@
+"""``cascal compare``: a recalibration against the calibration before it."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+__all__ = ["add_compare_parser"]
+
+_HUGE = 1e150
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .cli import EXIT_NOT_CONFORMING, check_outputs, warn
+    from .errors import InputError
+    from .io.csvout import auto_decimals, write_columns
+    from .io.modelfile import load_model
+    from .workflow import compare_models
+
+    check_outputs(args.output, args.plot, inputs=(args.old, args.new))
+    if args.max_change is not None and not (0 < args.max_change < _HUGE):
+        raise InputError(f"--max-change: expected a number > 0 below 1e150, got {args.max_change}")
+    old, new = load_model(args.old), load_model(args.new)
+    c = compare_models(old, new)
+    s, unit = c.summary(), old.unit
+    span = (
+        f"one turn (period {old.period:g})"
+        if old.periodic
+        else f"their common range [{c.reading[0]:.9g}, {c.reading[-1]:.9g}]"
+    )
+    print(
+        f"Compared {args.new} (new) with {args.old} (old) over {span} {unit}, "
+        f"{c.reading.size} readings."
+    )
+    print(
+        f"  old: fitted {old.created}, method {old.method}; new: fitted {new.created}, "
+        f"method {new.method}"
+    )
+    print(
+        f"  change of the correction (new - old): RMS {s['rms_change']:.4g} {unit}, largest "
+        f"{s['max_change']:.4g} {unit} at reading {s['at']:.9g}"
+    )
+    fig = None
+    if args.plot is not None:  # drawn before anything is written
+        from .report import comparison_figure
+
+        fig = comparison_figure(old, c, (Path(args.old).name, Path(args.new).name))
+    if c.has_u:
+        how = (
+            "the test bed's calibration both share counted once"
+            if c.shared
+            else "no fitted upstream stage in common"
+            if old.method == new.method == "bayes"
+            else "upstream errors not counted: not both bayes"
+        )
+        print(
+            f"  standard uncertainty the change would have if the device had not changed "
+            f"({how}): {c.u.min():.3g} to {c.u.max():.3g} {unit}"
+        )
+        share = s["share_beyond_U"]
+        if share:
+            print(
+                f"  |change| > U = {c.k:g} u over {100 * share:.1f} % of the range, En up to "
+                f"{s['max_en']:.3g} at reading {s['max_en_at']:.9g}: the correction changed by "
+                "more than the two calibrations' uncertainties explain: the device (or its "
+                "mounting) has changed"
+            )
+        else:
+            print(
+                f"  |change| <= U = {c.k:g} u everywhere (En at most {s['max_en']:.3g}): no "
+                "change beyond the two calibrations' uncertainties"
+            )
+    else:
+        warn("compare", "method lut gives no uncertainty: only the change is reported")
+    if args.output is not None:
+        cols = {
+            "reading": c.reading,
+            "old": c.old,
+            "new": c.new,
+            "change": c.change,
+            "u_old": c.u_old,
+            "u_new": c.u_new,
+            "u": c.u,
+            "En": c.en,
+        }
+        decimals = auto_decimals([c.reading, c.old, c.new], c.u if c.has_u else None)
+        print(f"Readings written to {write_columns(args.output, cols, decimals=decimals)}")
+    if fig is not None:
+        from .io.atomic import save_figure
+
+        print(f"Figure written to {save_figure(fig, args.plot, dpi=130)}")
+    if args.max_change is None:
+        return 0
+    if s["max_change"] > args.max_change:
+        beyond = float(np.mean(np.abs(c.change) > args.max_change))
+        print(
+            f"Changed by more than --max-change {args.max_change:g} {unit} over "
+            f"{100 * beyond:.1f} % of the range (largest {s['max_change']:.4g} {unit} at reading "
+            f"{s['at']:.9g})."
+        )
+        return EXIT_NOT_CONFORMING
+    print(f"Within --max-change {args.max_change:g} {unit} everywhere.")
+    return 0
+
+
+def add_compare_parser(sub: argparse._SubParsersAction) -> None:
+    """Register ``cascal compare`` on the subparsers ``sub``."""
+    p = sub.add_parser(
+        "compare",
+        help="compare a recalibration of a device with its calibration before",
+        description="Correct the same device readings with two models of one device (old, "
+        "then new) over their common calibrated range and report how much the correction "
+        "changed, against the uncertainty the change would have if the device had not changed "
+        "(En; a test-bed calibration both share counted once); with --max-change, exit status "
+        "3 when it changed by more.",
+    )
+    p.add_argument("old", metavar="OLD.json", help="the earlier calibration")
+    p.add_argument("new", metavar="NEW.json", help="the recalibration")
+    p.add_argument(
+        "--max-change",
+        type=float,
+        metavar="T",
+        help="largest change of the correction accepted, in the models' unit",
+    )
+    p.add_argument("-o", "--output", metavar="CHANGE.csv", help="write the readings compared")
+    p.add_argument("--plot", metavar="CHANGE.png", help="draw the change (PNG, SVG or PDF)")
+    p.set_defaults(func=_cmd_compare)

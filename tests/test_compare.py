@@ -1,0 +1,175 @@
+"""Comparing a recalibration with the calibration before: the change, and the uncertainty
+it would have were the device unchanged, against dense textbook formulas and sampling."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from cascal.errors import InputError
+from cascal.verification import compare
+from cascal.workflow import change_std, compare_models, correct, fit_model, shares_upstream
+from utils import demo_stages
+
+
+@pytest.fixture(scope="module")
+def pair():
+    """A device's calibration and its recalibration against the same test bed, after a
+    drift of the device of 50 µm across the axis (more accurate readings moved)."""
+    ref, dev = demo_stages()
+    drifted = dataclasses.replace(dev, y=dev.y + 5e-5 * (dev.x - 0.5) * 2)
+    testbed = fit_model([ref], n_restarts=1)
+    old = fit_model([dev], prefix=testbed, n_restarts=1)
+    new = fit_model([drifted], prefix=testbed, n_restarts=1)
+    return old, new
+
+
+def _dense_posterior_cov(gp, a, b):
+    """The textbook latent posterior covariance between positions a and b."""
+    C = gp.L @ gp.L.T  # the target covariance the fit factorised
+    return gp.kernel(a, b) - gp.kernel(a, gp.x) @ np.linalg.solve(C, gp.kernel(gp.x, b))
+
+
+def _targets_covariance(old, new, shared):
+    """Covariance of the two device fits' targets were the device unchanged, written out:
+    one device map (the old fit's prior), each fit's known and white noise, and the shared
+    test bed's posterior covariance between the two files' test-bed readings."""
+    go, gn = old.fitted.device, new.fitted.device
+    x = np.concatenate([go.x, gn.x])
+    no = go.x.size
+    C = go.kernel(x, x)
+    C[:no, :no] += go.noise.dense(no) + go.noise_variance * np.eye(no)
+    C[no:, no:] += gn.noise.dense(gn.x.size) + gn.noise_variance * np.eye(gn.x.size)
+    if shared:
+        S = _dense_posterior_cov(old.fitted.models[0], old.data[-1].y, new.data[-1].y)
+        C[:no, no:] += S
+        C[no:, :no] += S.T
+    return C
+
+
+def _weights(gp, r):
+    return np.linalg.solve(gp.L @ gp.L.T, gp.kernel(gp.x, r))
+
+
+def test_change_std_against_dense_formulas_and_sampling(pair):
+    old, new = pair
+    assert shares_upstream(old, new)
+    r = np.linspace(*old.calibrated_range, 37)
+    C = _targets_covariance(old, new, shared=True)
+    v = np.concatenate([-_weights(old.fitted.device, r), _weights(new.fitted.device, r)])
+    expected = np.sqrt(np.einsum("im,ij,jm->m", v, C, v))
+    got = change_std(old, new, r, shared=True)
+    np.testing.assert_allclose(got, expected, rtol=1e-7)
+    # Sampled: 4000 draws of the targets' deviations, each pushed through both fits'
+    # means, scatter their difference as the formula says (within 5 %, 3.3 sd of the
+    # sampled sd's error).
+    rng = np.random.default_rng(3)
+    w, V = np.linalg.eigh(C)
+    draws = (V * np.sqrt(np.clip(w, 0.0, None))) @ rng.standard_normal((w.size, 4000))
+    change = v.T @ draws
+    np.testing.assert_allclose(change.std(axis=1), got, rtol=0.05)
+    # The shared test bed's error cancels in part: smaller than the sum of the two u^2
+    # less the device's own map, counted twice there.
+    independent = change_std(old, new, r, shared=False)
+    assert np.all(got < independent)
+    np.testing.assert_allclose(
+        independent,
+        np.sqrt(np.einsum("im,ij,jm->m", v, _targets_covariance(old, new, False), v)),
+        rtol=1e-7,
+    )
+
+
+def test_compare_models_reports_the_change_and_its_uncertainty(pair):
+    old, new = pair
+    c = compare_models(old, new)
+    lo, hi = old.calibrated_range
+    np.testing.assert_array_equal(c.reading, np.linspace(lo, hi, 1001))
+    a, b = correct(old, c.reading), correct(new, c.reading)
+    np.testing.assert_array_equal(c.change, b.corrected - a.corrected)
+    np.testing.assert_array_equal(c.u_old, a.u)
+    assert c.shared
+    np.testing.assert_array_equal(c.u, change_std(old, new, c.reading, shared=True))
+    np.testing.assert_allclose(c.en, np.abs(c.change) / (2 * c.u), rtol=1e-12)
+    # The drift is found: the change follows it where the data are dense.
+    mid = (c.reading > 0.3) & (c.reading < 0.7)
+    drift = 5e-5 * (c.reading - 0.5) * 2
+    assert np.max(np.abs(c.change - drift)[mid]) < 2e-5
+    s = c.summary()
+    i = int(np.argmax(np.abs(c.change)))
+    assert s["max_change"] == abs(c.change[i]) and s["at"] == c.reading[i]
+    assert s["rms_change"] == pytest.approx(np.sqrt(np.mean(c.change**2)), rel=1e-12)
+    assert s["share_beyond_U"] == np.count_nonzero(np.abs(c.change) > 2 * c.u) / 1001
+    # A model against itself: no change.
+    same = compare_models(old, old)
+    assert np.all(same.change == 0.0) and np.all(same.en == 0.0)
+
+
+def test_upstream_is_shared_by_data_and_hyperparameters(pair):
+    old, new = pair
+    ref, dev = demo_stages()
+    # The same test bed fitted again (another cascal version): hyperparameters a few
+    # 1e-11 apart still count as the same calibration.
+    up = old.fitted.models[0]
+    kernel = dataclasses.replace(up.kernel, length_scale=up.kernel.length_scale * (1 + 3e-11))
+    refit = dataclasses.replace(
+        new,
+        fitted=dataclasses.replace(
+            new.fitted, models=(dataclasses.replace(up, kernel=kernel), new.fitted.device)
+        ),
+    )
+    assert shares_upstream(old, refit)
+    other_ref = dataclasses.replace(ref, y=ref.y + 1e-7)  # a test bed fitted on other data
+    other = fit_model([other_ref, dev], n_restarts=1)
+    assert not shares_upstream(old, other)
+    c = compare_models(old, other)
+    assert not c.shared
+    np.testing.assert_allclose(c.u, change_std(old, other, c.reading), rtol=1e-15)
+    homo = fit_model([ref, dev], method="homoscedastic", n_restarts=1)
+    assert not shares_upstream(homo, homo)  # its fits hold no upstream error to share
+
+
+def test_rotary_changes_go_the_short_way_round():
+    reading = np.array([0.0, 90.0, 180.0])
+    c = compare(reading, np.array([359.9, 90.0, 10.0]), np.ones(3), np.array([0.1, 90.2, 9.0]),
+                np.ones(3), period=360.0)  # fmt: skip
+    np.testing.assert_allclose(c.change, [0.2, 0.2, -1.0], atol=1e-12)
+    np.testing.assert_allclose(c.en, np.abs(c.change) / (2 * np.sqrt(2.0)))
+    with pytest.raises(ValueError, match="six non-empty arrays"):
+        compare(reading, reading, reading, reading[:2], reading)
+
+
+def test_models_that_cannot_be_compared_are_refused(pair):
+    old, _ = pair
+    ref, dev = demo_stages()
+    with pytest.raises(InputError, match="different units"):
+        compare_models(old, dataclasses.replace(old, unit="mm"))
+    with pytest.raises(InputError, match="differ in their period"):
+        compare_models(old, dataclasses.replace(old, period=360.0))
+    with pytest.raises(InputError, match="the models have 2 and 1 stages"):
+        compare_models(old, fit_model([ref], n_restarts=1))
+    part = dataclasses.replace(dev, x=dev.x[:40], y=dev.y[:40], counts=dev.counts[:40],
+                               rows=dev.rows[:40])  # fmt: skip
+    late = dataclasses.replace(dev, x=dev.x[-40:], y=dev.y[-40:], counts=dev.counts[-40:],
+                               rows=dev.rows[-40:])  # fmt: skip
+    a, b = fit_model([ref, part], n_restarts=1), fit_model([ref, late], n_restarts=1)
+    with pytest.raises(InputError, match="do not overlap"):
+        compare_models(a, b)
+
+
+def test_rotary_models_are_compared_over_one_turn():
+    from cascal.demo import rotary_demo
+
+    ref, dev = demo_stages(rotary_demo(0))
+    kw = dict(kernel="periodic", period=360.0, unit="deg", n_restarts=1)
+    testbed = fit_model([ref], **kw)
+    old = fit_model([dev], prefix=testbed, **kw)
+    new = fit_model([dataclasses.replace(dev, y=dev.y + 1e-3)], prefix=testbed, **kw)
+    c = compare_models(old, new, n=360)
+    np.testing.assert_array_equal(c.reading, np.arange(360.0))
+    assert c.shared and c.period == 360.0
+    a, b = correct(old, c.reading), correct(new, c.reading)
+    d = b.corrected - a.corrected
+    np.testing.assert_allclose(c.change, d - 360.0 * np.round(d / 360.0), rtol=0, atol=1e-12)
+    assert np.all(np.abs(c.change - 1e-3) < 3e-4)  # the offset, all the way round
