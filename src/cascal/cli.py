@@ -95,6 +95,14 @@ def check_outputs(output: str | None, plot: str | None, inputs: Sequence[str | P
         raise InputError(f"--plot {plot}: the same file as -o; give two names")
 
 
+def add_outputs(p: argparse.ArgumentParser, stem: str, table: str, figure: str, func) -> None:
+    """Register the ``-o STEM.csv`` table (``table``: what it holds), the ``--plot
+    STEM.png`` figure (``figure``: what it draws) and the handler ``func`` of a command."""
+    p.add_argument("-o", "--output", metavar=f"{stem}.csv", help=f"write {table} as CSV")
+    p.add_argument("--plot", metavar=f"{stem}.png", help=f"draw {figure} (PNG, SVG or PDF)")
+    p.set_defaults(func=func)
+
+
 def same_file(a: str | Path, b: str | Path) -> bool:
     """True when paths ``a`` and ``b`` name the same regular file, or the same location
     (links and ``..`` resolved) when one does not exist yet. Devices such as

@@ -107,6 +107,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 def add_compare_parser(sub: argparse._SubParsersAction) -> None:
     """Register ``cascal compare`` on the subparsers ``sub``."""
+    from .cli import add_outputs
+
     p = sub.add_parser(
         "compare",
         help="compare a recalibration of a device with its calibration before",
@@ -124,6 +126,4 @@ def add_compare_parser(sub: argparse._SubParsersAction) -> None:
         metavar="T",
         help="largest change of the correction accepted, in the models' unit",
     )
-    p.add_argument("-o", "--output", metavar="CHANGE.csv", help="write the readings compared")
-    p.add_argument("--plot", metavar="CHANGE.png", help="draw the change (PNG, SVG or PDF)")
-    p.set_defaults(func=_cmd_compare)
+    add_outputs(p, "CHANGE", "the readings compared", "the change", _cmd_compare)

@@ -99,7 +99,7 @@ def _interval(text: str, option: str) -> tuple[float, float]:
 
 def add_plan_parser(sub: argparse._SubParsersAction) -> None:
     """Register ``cascal plan`` on the subparsers ``sub``."""
-    from .cli import positive_int
+    from .cli import add_outputs, positive_int
 
     p = sub.add_parser(
         "plan",
@@ -135,6 +135,4 @@ def add_plan_parser(sub: argparse._SubParsersAction) -> None:
         help="standard deviation of one new reference measurement, in the model's unit "
         "(default: as precise as the average existing point)",
     )
-    p.add_argument("-o", "--output", metavar="PLAN.csv", help="write the plan as CSV")
-    p.add_argument("--plot", metavar="PLAN.png", help="draw the plan (PNG, SVG or PDF)")
-    p.set_defaults(func=_cmd_plan)
+    add_outputs(p, "PLAN", "the plan", "the plan", _cmd_plan)

@@ -171,6 +171,8 @@ def _ratio(before: float, after: float) -> str:
 
 def add_verify_parser(sub: argparse._SubParsersAction) -> None:
     """Register ``cascal verify`` on the subparsers ``sub``."""
+    from .cli import add_outputs
+
     p = sub.add_parser(
         "verify",
         help="check a model against independent check points (device reading, reference)",
@@ -208,6 +210,4 @@ def add_verify_parser(sub: argparse._SubParsersAction) -> None:
         metavar="E",
         help="maximum permissible error: a point conforms when |error| + 2 u_reference <= E",
     )
-    p.add_argument("-o", "--output", metavar="VERIFY.csv", help="write every check point as CSV")
-    p.add_argument("--plot", metavar="VERIFY.png", help="draw the errors (PNG, SVG or PDF)")
-    p.set_defaults(func=_cmd_verify)
+    add_outputs(p, "VERIFY", "every check point", "the errors", _cmd_verify)

@@ -10,7 +10,14 @@ from pathlib import Path
 from cascal.demo import DemoCase
 from cascal.io.csvout import auto_decimals, write_columns
 
-__all__ = ["assert_refused", "run_bad_cases", "run_cascal", "spoil", "write_case"]
+__all__ = [
+    "assert_refused",
+    "device_folder",
+    "run_bad_cases",
+    "run_cascal",
+    "spoil",
+    "write_case",
+]
 
 _SCRIPT = Path(sys.executable).with_name("cascal")
 
@@ -69,3 +76,12 @@ def spoil(src, dst, changes: dict[int, float]) -> None:
         x, y = lines[row - 1].split(",")
         lines[row - 1] = f"{x},{float(y) + delta!r}"
     dst.write_text("\n".join(lines) + "\n")
+
+
+def device_folder(folder: Path, good: Path, bad: Path) -> Path:
+    """A new folder of two device files for ``fit-devices``: ``a.csv`` a copy of ``good``,
+    ``b.csv`` of ``bad``."""
+    folder.mkdir()
+    (folder / "a.csv").write_text(good.read_text())
+    (folder / "b.csv").write_text(bad.read_text())
+    return folder

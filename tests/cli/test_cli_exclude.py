@@ -8,7 +8,7 @@ import re
 import shlex
 
 import pytest
-from cli_helpers import run_cascal
+from cli_helpers import device_folder, run_cascal
 
 from cascal.io.data import read_stage
 from cascal.io.modelfile import load_model
@@ -70,10 +70,7 @@ def test_the_warnings_say_how_to_leave_the_suspects_out(spoiled):
 def test_fit_devices_leaves_rows_of_the_test_bed_and_of_a_device_out(spoiled, linear_files):
     tmp, bad_ref, bad_dev = spoiled
     (_, good_dev), _ = linear_files
-    folder = tmp / "devices_ex"
-    folder.mkdir()
-    (folder / "a.csv").write_text(good_dev.read_text())
-    (folder / "b.csv").write_text(bad_dev.read_text())
+    folder = device_folder(tmp / "devices_ex", good_dev, bad_dev)
     res = run_cascal("fit-devices", bad_ref, "--devices", folder, "-o", tmp / "fleet_ex",
                      "--exclude", f"{bad_ref.name}:41", "--exclude", "b.csv:101,102-103",
                      "--jobs", "2")  # fmt: skip

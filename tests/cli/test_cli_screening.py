@@ -7,7 +7,7 @@ import re
 
 import numpy as np
 import pytest
-from cli_helpers import run_cascal, spoil
+from cli_helpers import device_folder, run_cascal, spoil
 
 from cascal.io.data import read_stage
 from cascal.io.modelfile import load_model
@@ -88,10 +88,7 @@ def test_lookup_tables_are_not_fitted_but_their_repeats_are_screened(spoiled):
 def test_fleet_summary_lists_suspect_rows(spoiled, linear_files):
     tmp, bad_ref, bad_dev = spoiled
     (_, good_dev), _ = linear_files
-    folder = tmp / "devices"
-    folder.mkdir()
-    (folder / "a.csv").write_text(good_dev.read_text())
-    (folder / "b.csv").write_text(bad_dev.read_text())
+    folder = device_folder(tmp / "devices", good_dev, bad_dev)
     res = run_cascal("fit-devices", bad_ref, "--devices", folder, "-o", tmp / "fleet")
     assert res.returncode == 0, res.stderr
     assert re.search(r"\] b: rms correction .*, 1 suspect row\n", res.stdout)
@@ -240,10 +237,7 @@ def test_fit_devices_screens_at_the_level_given_or_not_at_all(spoiled, linear_fi
 
     tmp, bad_ref, bad_dev = spoiled
     (_, good_dev), _ = linear_files
-    folder = tmp / "devices2"
-    folder.mkdir()
-    (folder / "a.csv").write_text(good_dev.read_text())
-    (folder / "b.csv").write_text(bad_dev.read_text())
+    folder = device_folder(tmp / "devices2", good_dev, bad_dev)
     strict = run_cascal("fit-devices", bad_ref, "--devices", folder, "-o", tmp / "fleet2",
                         "--screening-level", "1e-6", "--jobs", "1")  # fmt: skip
     assert strict.returncode == 0, strict.stderr
