@@ -1,5 +1,6 @@
-"""Comparing a recalibration with the calibration before: the change, and the uncertainty
-it would have were the device unchanged, against dense textbook formulas and sampling."""
+"""Comparing a recalibration with the calibration before: the change, the covariance it
+would have were the device unchanged (against dense textbook formulas), and the
+simultaneous band's false-alarm rate (against sampling)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,14 @@ import numpy as np
 import pytest
 
 from cascal.errors import InputError
-from cascal.verification import compare
-from cascal.workflow import change_std, compare_models, correct, fit_model, shares_upstream
+from cascal.verification import band_factor, compare
+from cascal.workflow import (
+    change_covariance,
+    compare_models,
+    correct,
+    fit_model,
+    shares_upstream,
+)
 from utils import demo_stages
 
 
@@ -34,16 +41,19 @@ def _dense_posterior_cov(gp, a, b):
 
 def _targets_covariance(old, new, shared):
     """Covariance of the two device fits' targets were the device unchanged, written out:
-    one device map (the old fit's prior), each fit's known and white noise, and the shared
-    test bed's posterior covariance between the two files' test-bed readings."""
+    one device map (the old fit's prior), each file's white noise, the test bed's posterior
+    covariance at each file's test-bed readings, and between them where it is shared."""
     go, gn = old.fitted.device, new.fitted.device
     x = np.concatenate([go.x, gn.x])
     no = go.x.size
+    ya, yb = old.data[-1].y, new.data[-1].y
     C = go.kernel(x, x)
-    C[:no, :no] += go.noise.dense(no) + go.noise_variance * np.eye(no)
-    C[no:, no:] += gn.noise.dense(gn.x.size) + gn.noise_variance * np.eye(gn.x.size)
+    C[:no, :no] += go.noise_variance * np.eye(no)
+    C[no:, no:] += gn.noise_variance * np.eye(gn.x.size)
+    C[:no, :no] += _dense_posterior_cov(old.fitted.models[0], ya, ya)
+    C[no:, no:] += _dense_posterior_cov(new.fitted.models[0], yb, yb)
     if shared:
-        S = _dense_posterior_cov(old.fitted.models[0], old.data[-1].y, new.data[-1].y)
+        S = _dense_posterior_cov(old.fitted.models[0], ya, yb)
         C[:no, no:] += S
         C[no:, :no] += S.T
     return C
@@ -53,32 +63,65 @@ def _weights(gp, r):
     return np.linalg.solve(gp.L @ gp.L.T, gp.kernel(gp.x, r))
 
 
-def test_change_std_against_dense_formulas_and_sampling(pair):
-    old, new = pair
-    assert shares_upstream(old, new)
+def _homoscedastic_pair():
+    """Two homoscedastic calibrations against test beds fitted on different reference
+    data (their errors independent; the fits themselves ignore them)."""
+    ref, dev = demo_stages()
+    other = dataclasses.replace(ref, y=ref.y + 2e-7)
+    kw = dict(method="homoscedastic", n_restarts=1)
+    return fit_model([ref, dev], **kw), fit_model([other, dev], **kw)
+
+
+@pytest.mark.parametrize("which", ["bayes, one test bed", "homoscedastic, two test beds"])
+def test_change_covariance_against_dense_formulas(pair, which):
+    old, new = pair if which.startswith("bayes") else _homoscedastic_pair()
+    shared = shares_upstream(old, new)
+    assert shared == which.startswith("bayes")
     r = np.linspace(*old.calibrated_range, 37)
-    C = _targets_covariance(old, new, shared=True)
+    C = _targets_covariance(old, new, shared)
     v = np.concatenate([-_weights(old.fitted.device, r), _weights(new.fitted.device, r)])
-    expected = np.sqrt(np.einsum("im,ij,jm->m", v, C, v))
-    got = change_std(old, new, r, shared=True)
-    np.testing.assert_allclose(got, expected, rtol=1e-7)
-    # Sampled: 4000 draws of the targets' deviations, each pushed through both fits'
-    # means, scatter their difference as the formula says (within 5 %, 3.3 sd of the
-    # sampled sd's error).
-    rng = np.random.default_rng(3)
-    w, V = np.linalg.eigh(C)
-    draws = (V * np.sqrt(np.clip(w, 0.0, None))) @ rng.standard_normal((w.size, 4000))
-    change = v.T @ draws
-    np.testing.assert_allclose(change.std(axis=1), got, rtol=0.05)
-    # The shared test bed's error cancels in part: smaller than the sum of the two u^2
-    # less the device's own map, counted twice there.
-    independent = change_std(old, new, r, shared=False)
-    assert np.all(got < independent)
-    np.testing.assert_allclose(
-        independent,
-        np.sqrt(np.einsum("im,ij,jm->m", v, _targets_covariance(old, new, False), v)),
-        rtol=1e-7,
+    expected = v.T @ C @ v
+    got = change_covariance(old, new, r, shared=shared)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-7 * np.abs(expected).max())
+    if shared:  # the shared test bed counted once: less than were it not shared
+        alone = change_covariance(old, new, r, shared=False)
+        assert np.all(np.diag(got) < np.diag(alone))
+    # For bayes, the test bed's posterior at the device file's readings is the known
+    # noise the fit was given (up to the pivoted factor's dropped pivots).
+    up = old.fitted.models[0].cross_covariance(old.data[-1].y, old.data[-1].y)
+    if old.method == "bayes":
+        Sigma = old.fitted.device.noise.dense(old.fitted.device.x.size)
+        np.testing.assert_allclose(up, Sigma, rtol=0, atol=1e-6 * np.abs(Sigma).max())
+
+
+def test_an_unchanged_device_leaves_the_band_in_5_percent_of_recalibrations(pair):
+    old, new = pair
+    c = compare_models(old, new)
+    cov = change_covariance(old, new, c.reading, shared=True)
+    np.testing.assert_allclose(c.u, np.sqrt(np.diag(cov)), rtol=1e-12)
+    w, V = np.linalg.eigh(cov)
+    big = w > w[-1] * 1e-12
+    rng = np.random.default_rng(7)  # not the band's own draws
+    z = (
+        np.abs((V[:, big] * np.sqrt(w[big])) @ rng.standard_normal((big.sum(), 8000)))
+        / c.u[:, None]
     )
+    top = z.max(axis=0)
+    assert 0.04 < np.mean(top > c.k_band) < 0.06
+    # Judged by k = 2 at every reading, an unchanged device would look changed far more often.
+    assert np.mean(top > 2.0) > 0.2
+
+
+def test_band_factor_against_known_cases():
+    from scipy.stats import norm
+
+    one = band_factor(np.array([[4.0]]))
+    assert one == pytest.approx(norm.ppf(0.975), abs=0.03)
+    ones = band_factor(np.full((50, 50), 2.0))  # fully correlated: one value
+    assert ones == pytest.approx(norm.ppf(0.975), abs=0.03)
+    sidak = norm.ppf(1 - (1 - 0.95 ** (1 / 100)) / 2)
+    assert band_factor(np.diag(np.linspace(1, 9, 100))) == pytest.approx(sidak, abs=0.03)
+    assert band_factor(np.eye(3)) == band_factor(np.eye(3))  # a fixed seed: the same factor
 
 
 def test_compare_models_reports_the_change_and_its_uncertainty(pair):
@@ -90,7 +133,6 @@ def test_compare_models_reports_the_change_and_its_uncertainty(pair):
     np.testing.assert_array_equal(c.change, b.corrected - a.corrected)
     np.testing.assert_array_equal(c.u_old, a.u)
     assert c.shared
-    np.testing.assert_array_equal(c.u, change_std(old, new, c.reading, shared=True))
     np.testing.assert_allclose(c.en, np.abs(c.change) / (2 * c.u), rtol=1e-12)
     # The drift is found: the change follows it where the data are dense.
     mid = (c.reading > 0.3) & (c.reading < 0.7)
@@ -101,6 +143,8 @@ def test_compare_models_reports_the_change_and_its_uncertainty(pair):
     assert s["max_change"] == abs(c.change[i]) and s["at"] == c.reading[i]
     assert s["rms_change"] == pytest.approx(np.sqrt(np.mean(c.change**2)), rel=1e-12)
     assert s["share_beyond_U"] == np.count_nonzero(np.abs(c.change) > 2 * c.u) / 1001
+    assert s["share_beyond_band"] == np.count_nonzero(np.abs(c.change) > c.k_band * c.u) / 1001
+    assert c.changed == (s["max_z"] > c.k_band)
     # A model against itself: no change.
     same = compare_models(old, old)
     assert np.all(same.change == 0.0) and np.all(same.en == 0.0)
@@ -125,9 +169,11 @@ def test_upstream_is_shared_by_data_and_hyperparameters(pair):
     assert not shares_upstream(old, other)
     c = compare_models(old, other)
     assert not c.shared
-    np.testing.assert_allclose(c.u, change_std(old, other, c.reading), rtol=1e-15)
+    cov = change_covariance(old, other, c.reading)
+    np.testing.assert_allclose(c.u, np.sqrt(np.diag(cov)), rtol=1e-12)
     homo = fit_model([ref, dev], method="homoscedastic", n_restarts=1)
-    assert not shares_upstream(homo, homo)  # its fits hold no upstream error to share
+    assert shares_upstream(old, homo)  # one test bed: stage 0 is fitted alike by both methods
+    assert not shares_upstream(old, fit_model([ref, dev], method="lut"))
 
 
 def test_rotary_changes_go_the_short_way_round():
@@ -136,7 +182,7 @@ def test_rotary_changes_go_the_short_way_round():
                 np.ones(3), period=360.0)  # fmt: skip
     np.testing.assert_allclose(c.change, [0.2, 0.2, -1.0], atol=1e-12)
     np.testing.assert_allclose(c.en, np.abs(c.change) / (2 * np.sqrt(2.0)))
-    with pytest.raises(ValueError, match="six non-empty arrays"):
+    with pytest.raises(ValueError, match="five non-empty arrays"):
         compare(reading, reading, reading, reading[:2], reading)
 
 

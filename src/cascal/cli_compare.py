@@ -17,6 +17,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from .errors import InputError
     from .io.csvout import auto_decimals, write_columns
     from .io.modelfile import load_model
+    from .verification import BAND_LEVEL
     from .workflow import compare_models
 
     check_outputs(args.output, args.plot, inputs=(args.old, args.new))
@@ -51,26 +52,29 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         how = (
             "the test bed's calibration both share counted once"
             if c.shared
-            else "no fitted upstream stage in common"
-            if old.method == new.method == "bayes"
-            else "upstream errors not counted: not both bayes"
+            else "their upstream calibrations counted as independent"
+            if len(old.fitted.models) > 1
+            else "no upstream stage"
         )
         print(
             f"  standard uncertainty the change would have if the device had not changed "
             f"({how}): {c.u.min():.3g} to {c.u.max():.3g} {unit}"
         )
-        share = s["share_beyond_U"]
-        if share:
+        band = (
+            f"an unchanged device's |change| / u stays below {c.k_band:.2f} over the whole "
+            f"range with {100 * BAND_LEVEL:g} % probability"
+        )
+        print(f"  largest |change| / u {s['max_z']:.3g}, at reading {s['max_z_at']:.9g}; {band}")
+        if c.changed:
             print(
-                f"  |change| > U = {c.k:g} u over {100 * share:.1f} % of the range, En up to "
-                f"{s['max_en']:.3g} at reading {s['max_en_at']:.9g}: the correction changed by "
-                "more than the two calibrations' uncertainties explain: the device (or its "
-                "mounting) has changed"
+                f"  beyond that band over {100 * s['share_beyond_band']:.1f} % of the range: "
+                "the device (or its mounting) has changed since the old calibration"
             )
         else:
             print(
-                f"  |change| <= U = {c.k:g} u everywhere (En at most {s['max_en']:.3g}): no "
-                "change beyond the two calibrations' uncertainties"
+                "  within that band everywhere: no change shown beyond what the two "
+                f"calibrations' uncertainties explain (pointwise, |change| > {c.k:g} u over "
+                f"{100 * s['share_beyond_U']:.1f} % of the range)"
             )
     else:
         warn("compare", "method lut gives no uncertainty: only the change is reported")
@@ -115,8 +119,8 @@ def add_compare_parser(sub: argparse._SubParsersAction) -> None:
         description="Correct the same device readings with two models of one device (old, "
         "then new) over their common calibrated range and report how much the correction "
         "changed, against the uncertainty the change would have if the device had not changed "
-        "(En; a test-bed calibration both share counted once); with --max-change, exit status "
-        "3 when it changed by more.",
+        "(a test-bed calibration both share counted once) and a simultaneous 95 %% band over "
+        "the range; with --max-change, exit status 3 when it changed by more.",
     )
     p.add_argument("old", metavar="OLD.json", help="the earlier calibration")
     p.add_argument("new", metavar="NEW.json", help="the recalibration")

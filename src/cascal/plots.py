@@ -322,8 +322,9 @@ def plot_change(
     xunit: str = "m",
     names: tuple[str, str] = ("old", "new"),
 ) -> Figure:
-    """A recalibration's change of the correction against the reading, with the expanded
-    uncertainty ``k u`` of the change as a band and the readings beyond it marked.
+    """A recalibration's change of the correction against the reading, with the
+    simultaneous band ``±k_band u`` an unchanged device stays within over the whole range
+    with 95 % probability, and the readings beyond it marked.
 
     Args:
         c: The comparison of :func:`cascal.verification.compare`.
@@ -334,21 +335,22 @@ def plot_change(
         fig = Figure(figsize=(7.5, 3.6), layout="constrained")
     ax = fig.subplots()
     r, d = c.reading, c.change * scale
-    if c.has_u:
-        band = c.k * c.u * scale
-        ax.fill_between(r, -band, band, color="C0", alpha=0.2, lw=0, label=f"±U (k = {c.k:g})")
-    ax.axhline(0.0, color="k", lw=0.6)
-    ax.plot(r, d, "-", color="C0", lw=1.2, label="change of the correction")
     s = c.summary()
     title = (
         f"RMS change {s['rms_change'] * scale:.3g} {unit}, "
         f"largest {s['max_change'] * scale:.3g} {unit}"
     )
     if c.has_u:
-        beyond = np.where(c.en > 1.0, d, np.nan)
-        if np.any(c.en > 1.0):
-            ax.plot(r, beyond, "-", color="C3", lw=2, label="beyond ±U")
-        title += f"; beyond ±U over {100 * s['share_beyond_U']:.1f} % of the range"
+        band = c.k_band * c.u * scale
+        label = f"95 % simultaneous band (±{c.k_band:.2f} u)"
+        ax.fill_between(r, -band, band, color="C0", alpha=0.2, lw=0, label=label)
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.plot(r, d, "-", color="C0", lw=1.2, label="change of the correction")
+    if c.has_u:
+        beyond = c.z > c.k_band
+        if np.any(beyond):
+            ax.plot(r, np.where(beyond, d, np.nan), "-", color="C3", lw=2, label="beyond it")
+        title += f"; beyond the band over {100 * s['share_beyond_band']:.1f} % of the range"
     ax.set_xlabel(f"device reading [{xunit}]")
     ax.set_ylabel(f"{names[1]} - {names[0]} [{unit}]")
     ax.set_title(title, fontsize=9)

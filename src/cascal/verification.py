@@ -10,9 +10,12 @@ error). Against a maximum permissible error (MPE), a point conforms when
 ``|error| + k u_reference <= MPE``: the error, enlarged by the expanded uncertainty of the
 check itself, stays within the limit (the rule of ISO 14253-1 for proving conformance).
 A recalibration is compared with the calibration before it (:func:`compare`) on a grid of
-readings: the change of the correction, and ``En = |change| / (k u)`` with ``u`` the
-standard uncertainty the change would have if the device had not changed (see
-:func:`cascal.workflow.change_std`).
+readings: the change of the correction, its standard uncertainty ``u`` were the device
+unchanged (from the change's covariance, see :func:`cascal.workflow.change_covariance`),
+pointwise ``En = |change| / (k u)``, and a simultaneous band: the factor ``k_band`` within
+which an unchanged device's ``|change| / u`` stays over the whole grid with 95 %
+probability. Judging every reading by ``k = 2`` would call a third of unchanged devices
+changed somewhere along the range; the band keeps that at 5 %.
 Pure numerics: no files, no printing.
 """
 
@@ -24,9 +27,11 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
+    "BAND_LEVEL",
     "COVERAGE_FACTOR",
     "Comparison",
     "Verification",
+    "band_factor",
     "compare",
     "expected_within",
     "verify",
@@ -182,6 +187,12 @@ def verify(
     )
 
 
+#: Probability that an unchanged device's change stays within the simultaneous band.
+BAND_LEVEL = 0.95
+#: Draws that set the simultaneous band's factor (its 95 % quantile to about 0.01 in k).
+BAND_DRAWS = 20_000
+
+
 @dataclass(frozen=True, slots=True)
 class Comparison:
     """Two calibrations' corrections on one grid of device readings.
@@ -192,8 +203,9 @@ class Comparison:
         change: ``new - old`` (for a rotary model the shortest way round), shape (n,).
         u_old, u_new: Their standard uncertainties, shape (n,); NaN for lookup tables.
         u: Standard uncertainty of the change were the device unchanged, shape (n,).
+        k_band: Factor of the simultaneous band ``±k_band u`` (NaN without u).
         shared: Whether ``u`` counts an upstream calibration both share.
-        k: Coverage factor.
+        k: Coverage factor of the pointwise En.
         period: A rotary model's period, or None.
     """
 
@@ -204,40 +216,78 @@ class Comparison:
     u_old: np.ndarray
     u_new: np.ndarray
     u: np.ndarray
+    k_band: float = math.nan
     shared: bool = False
     k: float = COVERAGE_FACTOR
     period: float | None = None
 
     @property
-    def en(self) -> np.ndarray:
-        """``|change| / (k u)``, shape (n,) (0 where the change is 0); NaN without u."""
+    def z(self) -> np.ndarray:
+        """``|change| / u``, shape (n,) (0 where the change is 0); NaN without u."""
         c = np.abs(self.change)
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(c == 0.0, 0.0 * self.u, c / (self.k * self.u))
+            return np.where(c == 0.0, 0.0 * self.u, c / self.u)
+
+    @property
+    def en(self) -> np.ndarray:
+        """Pointwise ``|change| / (k u)``, shape (n,); NaN without u."""
+        return self.z / self.k
 
     @property
     def has_u(self) -> bool:
         """Whether the change has an uncertainty (neither model is a lookup table)."""
         return not np.any(np.isnan(self.u))
 
+    @property
+    def changed(self) -> bool | None:
+        """Whether the change leaves the simultaneous band somewhere; None without u."""
+        return bool(np.max(self.z) > self.k_band) if self.has_u else None
+
     def summary(self) -> dict[str, float | None]:
-        """RMS and largest |change| and the reading of the largest; the share of the grid
-        where ``En > 1``, the largest En and its reading (None without u)."""
+        """RMS and largest |change| and the reading of the largest; the largest
+        ``|change| / u`` and its reading, and the share of the grid beyond the band and
+        beyond ``k u`` (None without u)."""
         i = int(np.argmax(np.abs(self.change)))
         out: dict[str, float | None] = {
             "rms_change": _rms(self.change),
             "max_change": float(abs(self.change[i])),
             "at": float(self.reading[i]),
+            "max_z": None,
+            "max_z_at": None,
+            "share_beyond_band": None,
             "share_beyond_U": None,
-            "max_en": None,
-            "max_en_at": None,
         }
         if self.has_u:
-            en = self.en
-            j = int(np.argmax(en))
-            out["share_beyond_U"] = float(np.mean(en > 1.0))
-            out["max_en"], out["max_en_at"] = float(en[j]), float(self.reading[j])
+            z = self.z
+            j = int(np.argmax(z))
+            out["max_z"], out["max_z_at"] = float(z[j]), float(self.reading[j])
+            out["share_beyond_band"] = float(np.mean(z > self.k_band))
+            out["share_beyond_U"] = float(np.mean(z > self.k))
         return out
+
+
+def band_factor(
+    cov: np.ndarray, *, level: float = BAND_LEVEL, draws: int = BAND_DRAWS, seed: int = 0
+) -> float:
+    """Factor k with ``P(max_i |Z_i| / sd_i <= k) = level`` for ``Z ~ N(0, cov)`` (n, n):
+    the quantile of the largest standardised value, from ``draws`` draws of a fixed seed
+    (the same factor every time). 1.96 for one point or fully correlated ones; the Sidak
+    factor for independent ones."""
+    cov = np.asarray(cov, dtype=float)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    keep = sd > 0.0
+    if not np.any(keep):
+        return math.nan
+    corr = cov[np.ix_(keep, keep)] / np.outer(sd[keep], sd[keep])
+    w, V = np.linalg.eigh(0.5 * (corr + corr.T))
+    big = w > w[-1] * 1e-12
+    factor = V[:, big] * np.sqrt(w[big])
+    rng = np.random.default_rng(seed)
+    top = np.empty(draws)
+    for s in range(0, draws, 2000):  # blocks: (n, 2000) at a time
+        z = factor @ rng.standard_normal((factor.shape[1], min(2000, draws - s)))
+        top[s : s + z.shape[1]] = np.max(np.abs(z), axis=0)
+    return float(np.quantile(top, level))
 
 
 def compare(
@@ -247,28 +297,30 @@ def compare(
     new: np.ndarray,
     u_new: np.ndarray,
     *,
-    u_change: np.ndarray | None = None,
+    change_cov: np.ndarray | None = None,
     shared: bool = False,
     period: float | None = None,
     k: float = COVERAGE_FACTOR,
 ) -> Comparison:
     """Compare two calibrations' corrected readings (n,) and their standard uncertainties
-    (n,) at the same device readings (n,). ``u_change``: the change's standard uncertainty
-    (n,), by default that of two independent errors, ``hypot(u_old, u_new)``; ``shared``:
-    whether it counts a shared upstream calibration; ``period``: changes are taken the
-    shortest way round."""
+    (n,) at the same device readings (n,). ``change_cov``: covariance (n, n) of the change
+    were the device unchanged, by default that of two independent errors at independent
+    readings (``diag(u_old^2 + u_new^2)``); ``shared``: whether it counts a shared upstream
+    calibration; ``period``: changes are taken the shortest way round."""
     arrays = [np.asarray(a, dtype=float) for a in (reading, old, u_old, new, u_new)]
-    arrays.append(
-        np.hypot(arrays[2], arrays[4]) if u_change is None else np.asarray(u_change, float)
-    )
     n = arrays[0].shape
     if any(a.ndim != 1 or a.shape != n for a in arrays) or not n[0]:
-        raise ValueError("compare: expected six non-empty arrays of one shape (n,)")
+        raise ValueError("compare: expected five non-empty arrays of one shape (n,)")
     if not (0.0 < k < math.inf):
         raise ValueError(f"compare: k must be a finite number > 0, got {k!r}")
-    r, a, ua, b, ub, uc = arrays
+    r, a, ua, b, ub = arrays
+    cov = np.diag(ua**2 + ub**2) if change_cov is None else np.asarray(change_cov, float)
+    if cov.shape != n * 2:
+        raise ValueError(f"compare: change_cov has shape {cov.shape}, expected {n * 2}")
+    u = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    band = band_factor(cov) if np.all(np.isfinite(cov)) else math.nan
     p = None if period is None else float(period)
-    return Comparison(r, a, b, _difference(b, a, p), ua, ub, uc, bool(shared), float(k), p)
+    return Comparison(r, a, b, _difference(b, a, p), ua, ub, u, band, bool(shared), float(k), p)
 
 
 def _difference(a: np.ndarray, b: np.ndarray, period: float | None) -> np.ndarray:

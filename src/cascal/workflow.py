@@ -36,7 +36,7 @@ __all__ = [
     "DeviceResult",
     "MeasurementPlan",
     "StageScreening",
-    "change_std",
+    "change_covariance",
     "compare_models",
     "compensation",
     "correct",
@@ -251,7 +251,7 @@ def compare_models(
 ) -> Comparison:
     """Compare a recalibration ``new`` with the calibration ``old`` of the same device on
     ``n`` equally spaced readings of their common calibrated range (one turn for periodic
-    models): the change and, for GP models, :func:`change_std`.
+    models): the change and, for GP models, :func:`change_covariance`.
 
     Raises:
         InputError: The models differ in unit, period or number of stages, or their
@@ -281,20 +281,20 @@ def compare_models(
         grid = np.linspace(lo, hi, n)
     a, b = correct(old, grid), correct(new, grid)
     shared = shares_upstream(old, new)
-    u = None
+    cov = None
     if isinstance(old.fitted.device, FittedGP) and isinstance(new.fitted.device, FittedGP):
-        u = change_std(old, new, grid, shared=shared)
+        cov = change_covariance(old, new, grid, shared=shared)
     return compare(
-        grid, a.corrected, a.u, b.corrected, b.u, u_change=u, shared=shared, period=old.period
+        grid, a.corrected, a.u, b.corrected, b.u, change_cov=cov, shared=shared, period=old.period
     )
 
 
 def shares_upstream(a: CalibrationModel, b: CalibrationModel, *, rtol: float = 1e-6) -> bool:
-    """Whether two ``bayes`` models hold the same stages above their device stage: the same
-    data and, within ``rtol``, the same hyperparameters (one test-bed calibration, fitted
-    once or again by another cascal version), whose error is then part of both devices'."""
+    """Whether two GP models hold the same stages above their device stage: the same data
+    and, within ``rtol``, the same hyperparameters (one test-bed calibration, fitted once or
+    again by another cascal version), whose error is then part of both devices' errors."""
     ma, mb = a.fitted.models, b.fitted.models
-    if a.method != "bayes" or b.method != "bayes" or len(ma) != len(mb) or len(ma) < 2:
+    if len(ma) != len(mb) or len(ma) < 2 or not all(isinstance(m, FittedGP) for m in ma + mb):
         return False
     for k in range(len(ma) - 1):
         da, db = a.data[k], b.data[k]
@@ -312,44 +312,50 @@ def shares_upstream(a: CalibrationModel, b: CalibrationModel, *, rtol: float = 1
     return True
 
 
-def change_std(
+def change_covariance(
     old: CalibrationModel, new: CalibrationModel, readings: object, *, shared: bool = False
 ) -> np.ndarray:
-    """Standard uncertainty (m,) that the change ``new - old`` of two GP models' corrections
-    at device readings (m,) would have if the device had not changed.
+    """Covariance (m, m) that the change ``new - old`` of two GP models' corrections at
+    device readings (m,) would have if the device had not changed.
 
     Each correction is its device GP's mean, ``m(r) + w^T (t - m(X))`` with weights
-    ``w = (K + Sigma + s^2 I)^-1 k(X, r)``; under that hypothesis both estimate one device
-    map, so the change is ``v^T e`` with ``v = [-w_old; w_new]`` and ``e`` the two target
-    vectors' deviations from it: the map at both sets of readings (prior covariance of the
-    old fit's kernel), each fit's known noise Sigma and white noise, and, with ``shared``
-    (:func:`shares_upstream`), the covariance between the two device files' upper readings
-    of the upstream stage both were fitted below. ``u^2 = v^T C v``, PSD by construction.
+    ``w = (K + noise)^-1 k(X, r)``; under that hypothesis both estimate one device map, so
+    the change is ``v^T e`` with ``v = [-w_old; w_new]`` and ``e`` the two target vectors'
+    deviations from it, of covariance ``C``: the map at both files' readings (the old fit's
+    kernel), each file's repeat noise and learned white noise, and the errors of the stage
+    above at each file's upper readings (its posterior covariance; the same for either
+    method: a ``homoscedastic`` fit ignores them, they are there all the same), between the
+    two files too where that stage is shared (``shared``, :func:`shares_upstream`). The
+    covariance is ``v^T C v``, positive semi-definite by construction.
     """
     r = np.asarray(readings, dtype=float)
     ga, gb = old.fitted.device, new.fitted.device
     if not (isinstance(ga, FittedGP) and isinstance(gb, FittedGP)):
-        raise InputError("change_std: both models need a GP device stage")
-    x = np.concatenate([ga.x, gb.x])
+        raise InputError("change_covariance: both models need a GP device stage")
     na = ga.x.size
-    C = ga.kernel(x)  # the device map, one and the same under the hypothesis
-    C[:na, :na] += _noise_dense(ga)
-    C[na:, na:] += _noise_dense(gb)
-    C[np.diag_indices_from(C)] += np.r_[
-        np.full(na, ga.noise_variance), np.full(gb.x.size, gb.noise_variance)
-    ]
-    if shared:
-        up = old.fitted.models[-2]
-        S = up.cross_covariance(old.data[-1].y, new.data[-1].y)  # type: ignore[union-attr]
+    C = ga.kernel(np.concatenate([ga.x, gb.x]))  # the device map, one under the hypothesis
+    C[:na, :na] += _own_noise(old) + ga.noise_variance * np.eye(na)
+    C[na:, na:] += _own_noise(new) + gb.noise_variance * np.eye(gb.x.size)
+    ya, yb = old.data[-1].y, new.data[-1].y
+    ups = [m.fitted.models[-2] if len(m.fitted.models) > 1 else None for m in (old, new)]
+    if isinstance(ups[0], FittedGP):
+        C[:na, :na] += ups[0].cross_covariance(ya, ya)
+    if isinstance(ups[1], FittedGP):
+        C[na:, na:] += ups[1].cross_covariance(yb, yb)
+    if shared and isinstance(ups[0], FittedGP):
+        S = ups[0].cross_covariance(ya, yb)
         C[:na, na:] += S
         C[na:, :na] += S.T
     v = np.concatenate([-_weights(ga, r), _weights(gb, r)])
-    return np.sqrt(np.clip(np.sum(v * (C @ v), axis=0), 0.0, None))
+    cov = v.T @ (C @ v)
+    return 0.5 * (cov + cov.T)
 
 
-def _noise_dense(gp: FittedGP) -> np.ndarray:
-    n = gp.x.size
-    return np.zeros((n, n)) if gp.noise is None else gp.noise.dense(n)
+def _own_noise(model: CalibrationModel) -> np.ndarray:
+    """The device file's own known noise (the spread of its repeats), dense (n, n)."""
+    st = model.data[-1]
+    n = st.x.size
+    return np.zeros((n, n)) if st.noise is None else np.diag(np.broadcast_to(st.noise, n))
 
 
 def _weights(gp: FittedGP, r: np.ndarray) -> np.ndarray:

@@ -48,6 +48,10 @@ def test_compare_prints_and_writes_the_library_s_numbers(models):
     assert f"RMS {s['rms_change']:.4g} m, largest {s['max_change']:.4g} m" in res.stdout
     assert "(the test bed's calibration both share counted once)" in res.stdout
     assert f"{c.u.min():.3g} to {c.u.max():.3g} m" in res.stdout
+    assert f"largest |change| / u {s['max_z']:.3g}, at reading {s['max_z_at']:.9g}" in res.stdout
+    assert f"stays below {c.k_band:.2f} over the whole range with 95 % probability" in res.stdout
+    verdict = "the device (or its mounting) has changed" if c.changed else "no change shown"
+    assert verdict in res.stdout
     assert (tmp / "c.png").stat().st_size > 10_000
     with open(tmp / "c.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
