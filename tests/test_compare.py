@@ -219,3 +219,19 @@ def test_rotary_models_are_compared_over_one_turn():
     d = b.corrected - a.corrected
     np.testing.assert_allclose(c.change, d - 360.0 * np.round(d / 360.0), rtol=0, atol=1e-12)
     assert np.all(np.abs(c.change - 1e-3) < 3e-4)  # the offset, all the way round
+
+
+def test_a_drifted_device_leaves_the_band_and_an_unchanged_one_does_not():
+    from cascal.demo import linear_recalibration
+    from cascal.io.data import StageData
+
+    ref, dev = demo_stages()
+    testbed = fit_model([ref], n_restarts=1)
+    old = fit_model([dev], prefix=testbed, n_restarts=1)
+    found = {}
+    for drift in (0.0, 2.5e-4):
+        st = linear_recalibration(0, drift=drift)
+        data = StageData(st.x, st.y, None, np.ones(st.x.size, int), np.arange(2, 202), dev.source)
+        c = compare_models(old, fit_model([data], prefix=testbed, n_restarts=1))
+        found[drift] = (c.changed, c.summary()["max_z"], c.k_band)
+    assert found[0.0][0] is False and found[2.5e-4][0] is True, found

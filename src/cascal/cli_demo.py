@@ -1,5 +1,6 @@
 """``cascal demo``: simulated example files, then ``fit``, ``correct``, ``report``,
-``export``, ``plan`` and ``verify`` on them.
+``export``, ``plan`` and ``verify`` on them, and for the linear case a recalibration after
+a drift (``fit``, ``compare``, ``info``).
 
 Two cases (:mod:`cascal.demo`): a linear axis in metres whose reference cannot reach a
 stretch in the middle, and a rotary table in degrees whose reference cannot reach a sector
@@ -16,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .demo import DemoCase, linear_demo, rotary_demo
+from .demo import DemoCase, linear_demo, linear_recalibration, rotary_demo
 from .io.atomic import save_figure
 from .io.csvout import auto_decimals, write_columns
 from .io.modelfile import load_model
@@ -31,7 +32,7 @@ def run_demo(out: Path, *, seed: int, main: Callable[[Sequence[str]], int]) -> i
     returns the status."""
     for case in (linear_demo(seed), rotary_demo(seed)):
         folder = out / "demo" / case.name
-        status = _run_case(case, folder, main)
+        status = _run_case(case, folder, main, seed)
         if status:
             return status
     linear, rotary = out / "demo" / "linear", out / "demo" / "rotary"
@@ -54,11 +55,12 @@ def run_demo(out: Path, *, seed: int, main: Callable[[Sequence[str]], int]) -> i
     )
     print(f"  {linear / 'plan.png'}   where the next reference measurements help most")
     print(f"  {linear / 'verify.png'}   errors against the simulated truth, with U")
+    print(f"  {linear / 'change.png'}   a recalibration after a drift: the change, in its band")
     print(f"  {figure}   the rotary correction across 0/360 deg")
     return 0
 
 
-def _run_case(case: DemoCase, folder: Path, main: Callable[[Sequence[str]], int]) -> int:
+def _run_case(case: DemoCase, folder: Path, main: Callable[[Sequence[str]], int], seed: int) -> int:
     print(f"== {case.name} demo ({case.unit}) in {folder}/")
     files = []
     for st in case.stages:
@@ -111,5 +113,31 @@ def _run_case(case: DemoCase, folder: Path, main: Callable[[Sequence[str]], int]
         status = main(argv)
         if status:
             return status
+    if case.name == "linear":
+        status = _recalibrate(folder, files[0], model, extra, main, seed)
+        if status:
+            return status
     print()
+    return 0
+
+
+def _recalibrate(
+    folder: Path, reference: str, model: Path, extra: list[str], main: Callable, seed: int
+) -> int:
+    """The linear device measured again after a drift of up to 0.25 mm: fit, compare."""
+    st = linear_recalibration(seed, drift=2.5e-4)
+    path = folder / st.file
+    decimals = auto_decimals([st.x, st.y])
+    write_columns(path, {st.columns[0]: st.x, st.columns[1]: st.y}, decimals=decimals)
+    print(f"\nWrote {path.name}: the device measured again after it drifted (up to 0.25 mm)")
+    recal = folder / "model_recalibrated.json"
+    for argv in (
+        ["fit", reference, str(path), "-o", str(recal), *extra],
+        ["compare", str(model), str(recal), "--plot", str(folder / "change.png")],
+        ["info", str(recal)],
+    ):
+        print(f"\n$ cascal {shlex.join(argv)}", flush=True)
+        status = main(argv)
+        if status:
+            return status
     return 0

@@ -21,7 +21,14 @@ import numpy as np
 
 from .simulation import NOISE_VARIANCE, SensorMap, draw_map
 
-__all__ = ["DemoCase", "DemoStage", "fleet_demo", "linear_demo", "rotary_demo"]
+__all__ = [
+    "DemoCase",
+    "DemoStage",
+    "fleet_demo",
+    "linear_demo",
+    "linear_recalibration",
+    "rotary_demo",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -95,6 +102,20 @@ def linear_demo(seed: int = 0) -> DemoCase:
         testbed,
         device,
     )
+
+
+def linear_recalibration(seed: int = 0, drift: float = 2.5e-4) -> DemoStage:
+    """The linear case's device measured again on its test bed (200 fresh readings, fresh
+    noise) after the device drifted: at true position t it now reads ``drift * (2 t - 1)``
+    more (m). ``drift = 0``: a recalibration of an unchanged device."""
+    case = linear_demo(seed)
+    rng = np.random.default_rng([seed, 2])
+    sd = np.sqrt(NOISE_VARIANCE)
+    ends = case.device_map(np.array([0.01, 0.99]))
+    t = case.device_map.inverse(np.linspace(ends[0], ends[1], 200))
+    x = case.device_map(t) + drift * (2.0 * t - 1.0) + rng.normal(0.0, sd, t.size)
+    y = case.testbed_map(t) + rng.normal(0.0, sd, t.size)
+    return DemoStage("testbed_device_recalibrated.csv", ("device", "testbed"), x, y)
 
 
 def _two_stages(x0, y0, x1, y1) -> tuple[DemoStage, DemoStage]:

@@ -32,6 +32,11 @@ def test_demo_writes_and_points_to_its_results(demo):
             assert (folder / name).stat().st_size > 0, name
         assert str(folder / "report.html") in res.stdout
         assert f"$ cascal fit {folder}" in res.stdout
+    linear = out / "demo" / "linear"
+    for name in ("testbed_device_recalibrated.csv", "model_recalibrated.json", "change.png"):
+        assert (linear / name).stat().st_size > 0, name
+    assert "the device (or its mounting) has changed since the old calibration" in res.stdout
+    assert f"$ cascal info {linear / 'model_recalibrated.json'}" in res.stdout
     assert (out / "rotary_periodic.png").stat().st_size > 10_000
     assert "Where to look:" in res.stdout
     assert res.stdout.count("x smaller") == 2
