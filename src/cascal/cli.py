@@ -374,7 +374,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    """Simulate a linear and a rotary cascade; fit, correct, report, export, plan, verify."""
+    """Simulate a linear and a rotary cascade; fit, correct, report, export, plan, verify;
+    recalibrate the linear device after a drift and compare."""
     from .cli_demo import run_demo
 
     return run_demo(Path(args.out), seed=args.seed, main=main)
@@ -609,6 +610,32 @@ def probability(text: str) -> float:
     return value
 
 
+#: Largest magnitude a number option or a check file's value may have (its squares stay finite).
+HUGE = 1e150
+
+
+def _real(text: str, positive: bool) -> float:
+    """A number from 0 (excluded where ``positive``) to below :data:`HUGE` for argparse."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not ((0 < value) if positive else (0 <= value)) or not value < HUGE:
+        sign = ">" if positive else ">="
+        raise argparse.ArgumentTypeError(f"expected a number {sign} 0 below 1e150, got {text}")
+    return value
+
+
+def nonnegative(text: str) -> float:
+    """argparse type: a number >= 0 below 1e150 (an uncertainty)."""
+    return _real(text, positive=False)
+
+
+def positive(text: str) -> float:
+    """argparse type: a number > 0 below 1e150 (a limit)."""
+    return _real(text, positive=True)
+
+
 def positive_int(text: str) -> int:
     """argparse type: an integer of at least 1."""
     return _whole(text, 1, "at least 1")
@@ -688,7 +715,8 @@ def _parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser(
         "demo",
-        help="simulate example files, then fit, correct, report, export, plan and verify them",
+        help="simulate example files, then fit, correct, report, export, plan, verify and "
+        "compare them",
     )
     demo.add_argument("--out", default="out", help="output folder (default out/)")
     demo.add_argument("--seed", type=seed, default=0, help="seed of the simulation (default 0)")

@@ -28,8 +28,8 @@ __all__ = ["run_demo"]
 
 
 def run_demo(out: Path, *, seed: int, main: Callable[[Sequence[str]], int]) -> int:
-    """Write, fit, correct, report, export, plan and verify both demo cases under ``out``;
-    returns the status."""
+    """Write, fit, correct, report, export, plan and verify both demo cases under ``out``,
+    and recalibrate the linear one after a drift (fit, compare, info); returns the status."""
     for case in (linear_demo(seed), rotary_demo(seed)):
         folder = out / "demo" / case.name
         status = _run_case(case, folder, main, seed)
@@ -82,7 +82,7 @@ def _run_case(case: DemoCase, folder: Path, main: Callable[[Sequence[str]], int]
     extra = ["--unit", case.unit, "--kernel", case.kernel]
     if case.period is not None:
         extra += ["--period", f"{case.period:g}"]
-    for argv in (
+    commands = [
         ["fit", *files, "-o", str(model), *extra],
         ["correct", str(model), str(readings), "-o", str(corrected)],
         ["report", str(model), "-o", str(report)],
@@ -108,11 +108,10 @@ def _run_case(case: DemoCase, folder: Path, main: Callable[[Sequence[str]], int]
             "--plot",
             str(folder / "verify.png"),
         ],
-    ):
-        print(f"\n$ cascal {shlex.join(argv)}", flush=True)
-        status = main(argv)
-        if status:
-            return status
+    ]
+    status = _run_commands(commands, main)
+    if status:
+        return status
     if case.name == "linear":
         status = _recalibrate(folder, files[0], model, extra, main, seed)
         if status:
@@ -131,11 +130,17 @@ def _recalibrate(
     write_columns(path, {st.columns[0]: st.x, st.columns[1]: st.y}, decimals=decimals)
     print(f"\nWrote {path.name}: the device measured again after it drifted (up to 0.25 mm)")
     recal = folder / "model_recalibrated.json"
-    for argv in (
+    commands = [
         ["fit", reference, str(path), "-o", str(recal), *extra],
         ["compare", str(model), str(recal), "--plot", str(folder / "change.png")],
         ["info", str(recal)],
-    ):
+    ]
+    return _run_commands(commands, main)
+
+
+def _run_commands(commands: list[list[str]], main: Callable) -> int:
+    """Print each command as a user would type it and run it; the first failure's status."""
+    for argv in commands:
         print(f"\n$ cascal {shlex.join(argv)}", flush=True)
         status = main(argv)
         if status:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 from pathlib import Path
 
 __all__ = ["add_info_parser", "input_status"]
@@ -30,13 +29,12 @@ def input_status(
 
 def _cmd_info(args: argparse.Namespace) -> int:
     from .cli import model_lines, warn
-    from .io.modelfile import load_model
+    from .io.modelfile import load_model, schema_version
     from .workflow import summarize_device
 
     model = load_model(args.model)
     n = len(model.fitted.models)
-    version = json.loads(Path(args.model).read_text(encoding="utf-8"))["schema_version"]
-    print(f"{args.model}: cascal model file, schema {version}, checksum verified")
+    print(f"{args.model}: cascal model file, schema {schema_version(model)}, checksum verified")
     print(
         f"Fitted {model.created} with cascal {model.cascal_version} (seed {model.seed}, "
         f"{model.n_restarts} optimiser starts per stage)"

@@ -11,13 +11,12 @@ __all__ = ["add_verify_parser"]
 #: even one standard normal error exceeds 3 in only 0.27 % of cases.
 _TOO_LARGE = 3.0
 #: Readings, reference values and options at or above this size are refused.
-_HUGE = 1e150
 
 
 def _cmd_verify(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import EXIT_NOT_CONFORMING, check_outputs, warn
+    from .cli import EXIT_NOT_CONFORMING, HUGE, check_outputs, warn
     from .errors import InputError
     from .io.csvout import auto_decimals, write_columns
     from .io.data import read_table
@@ -26,16 +25,11 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     from .workflow import verify_model
 
     check_outputs(args.output, args.plot, inputs=(args.model, args.check))
-    for option, value in (("--reading-u", args.reading_u), ("--reference-u", args.reference_u)):
-        if not (0 <= value < _HUGE):
-            raise InputError(f"{option}: expected a number >= 0 below 1e150, got {value}")
-    if args.mpe is not None and not (0 < args.mpe < _HUGE):
-        raise InputError(f"--mpe: expected a number > 0 below 1e150, got {args.mpe}")
     if args.x_column is not None and args.x_column == args.y_column:
         raise InputError(f"--x-column and --y-column both name {args.x_column!r}; give two")
     model = load_model(args.model)
     hint = "; choose two by name with --x-column and --y-column"
-    table = read_table(args.check, (args.x_column, args.y_column), hint=hint, max_abs=_HUGE)
+    table = read_table(args.check, (args.x_column, args.y_column), hint=hint, max_abs=HUGE)
     reading, reference = table.columns
     v = verify_model(
         model,
@@ -171,7 +165,7 @@ def _ratio(before: float, after: float) -> str:
 
 def add_verify_parser(sub: argparse._SubParsersAction) -> None:
     """Register ``cascal verify`` on the subparsers ``sub``."""
-    from .cli import add_outputs
+    from .cli import add_outputs, nonnegative, positive
 
     p = sub.add_parser(
         "verify",
@@ -191,7 +185,7 @@ def add_verify_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--y-column", metavar="NAME", help="column of the reference values")
     p.add_argument(
         "--reading-u",
-        type=float,
+        type=nonnegative,
         default=0.0,
         metavar="S",
         help="standard uncertainty of one device reading (its repeatability), in the model's "
@@ -199,14 +193,14 @@ def add_verify_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--reference-u",
-        type=float,
+        type=nonnegative,
         default=0.0,
         metavar="S",
         help="standard uncertainty of one reference value (default 0: taken as exact)",
     )
     p.add_argument(
         "--mpe",
-        type=float,
+        type=positive,
         metavar="E",
         help="maximum permissible error: a point conforms when |error| + 2 u_reference <= E",
     )

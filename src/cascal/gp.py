@@ -180,13 +180,16 @@ class FittedGP:
                 std[s : s + rows] = np.sqrt(np.clip(var, 0.0, None))
         return (mean, std) if std is not None else mean
 
+    def whitened(self, x: np.ndarray) -> np.ndarray:
+        """``L^-1 k(X, x)`` (n, m) for positions ``x`` (m,): posterior covariances are
+        ``k(a, b) - V_a^T V_b``, and ``L^-T V`` are the targets' weights in the mean."""
+        return solve_triangular(self.L, self.kernel(self.x, x), lower=True, check_finite=False)
+
     def cross_covariance(self, a: object, b: object) -> np.ndarray:
         """Posterior covariance (m, p) of the latent map between positions ``a`` (m,) and
         ``b`` (p,): ``k(a, b) - k(a, X) (K + noise)^-1 k(X, b)``."""
         xa, xb = as_positions(a, "a"), as_positions(b, "b")
-        Va = solve_triangular(self.L, self.kernel(self.x, xa), lower=True, check_finite=False)
-        Vb = solve_triangular(self.L, self.kernel(self.x, xb), lower=True, check_finite=False)
-        return self.kernel(xa, xb) - Va.T @ Vb
+        return self.kernel(xa, xb) - self.whitened(xa).T @ self.whitened(xb)
 
     def posterior(self, x: object) -> Posterior:
         """Posterior mean (m,) and full covariance (m, m) of the latent map at ``x``."""

@@ -149,7 +149,7 @@ def plan_reference(
     points = as_positions(where, "where") if lower is None else as_positions(lower.upper, "upper")
     # Stage 0's posterior covariance between the target's points and the candidates (q, c),
     # among the candidates (c, c), and the target points' variances (q,): updated in place.
-    Vp, Vc = _whitened(testbed, points), _whitened(testbed, cand)
+    Vp, Vc = testbed.whitened(points), testbed.whitened(cand)
     cross = testbed.kernel(points, cand) - Vp.T @ Vc
     among = testbed.kernel(cand) - Vc.T @ Vc
     var_p = testbed.kernel.diag(points) - np.einsum("ij,ij->j", Vp, Vp)
@@ -185,11 +185,6 @@ def plan_reference(
         np.sqrt(v[0]),
         np.sqrt(np.clip(after, 0.0, None)),
     )
-
-
-def _whitened(gp: FittedGP, x: np.ndarray) -> np.ndarray:
-    """``L^-1 K(X, x)`` (n, m): posterior covariances are ``K(a, b) - V_a^T V_b``."""
-    return solve_triangular(gp.L, gp.kernel(gp.x, x), lower=True, check_finite=False)
 
 
 def _noise(testbed: FittedGP, noise_variance: float | None) -> float:
@@ -303,7 +298,7 @@ def lower_variance_after(
     var = gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
     if pos.size == 0:
         return var
-    Vu, Vk = _whitened(testbed, up), _whitened(testbed, pos)
+    Vu, Vk = testbed.whitened(up), testbed.whitened(pos)
     Cuk = testbed.kernel(up, pos) - Vu.T @ Vk
     Ckk = testbed.kernel(pos) - Vk.T @ Vk
     Ckk.flat[:: pos.size + 1] += noise_variance

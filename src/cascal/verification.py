@@ -89,9 +89,7 @@ class Verification:
     def en(self) -> np.ndarray:
         """Normalised error ``|error| / (k u)``, shape (m,) (0 where the error is 0); NaN
         without a calibration u."""
-        e = np.abs(self.error)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(e == 0.0, 0.0 * self.u, e / (self.k * self.u))
+        return _ratio(self.error, self.k * self.u)
 
     @property
     def conforms(self) -> np.ndarray | None:
@@ -224,9 +222,7 @@ class Comparison:
     @property
     def z(self) -> np.ndarray:
         """``|change| / u``, shape (n,) (0 where the change is 0); NaN without u."""
-        c = np.abs(self.change)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(c == 0.0, 0.0 * self.u, c / self.u)
+        return _ratio(self.change, self.u)
 
     @property
     def en(self) -> np.ndarray:
@@ -321,6 +317,13 @@ def compare(
     band = band_factor(cov) if np.all(np.isfinite(cov)) else math.nan
     p = None if period is None else float(period)
     return Comparison(r, a, b, _difference(b, a, p), ua, ub, u, band, bool(shared), float(k), p)
+
+
+def _ratio(e: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """``|e| / s`` elementwise; 0 where ``e`` is 0 (NaN there only where ``s`` is NaN)."""
+    a = np.abs(e)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(a == 0.0, 0.0 * s, a / s)
 
 
 def _difference(a: np.ndarray, b: np.ndarray, period: float | None) -> np.ndarray:

@@ -360,8 +360,7 @@ def _own_noise(model: CalibrationModel) -> np.ndarray:
 
 def _weights(gp: FittedGP, r: np.ndarray) -> np.ndarray:
     """``(K + noise)^-1 k(X, r)``, shape (n, m): each target's weight in the mean at r."""
-    V = solve_triangular(gp.L, gp.kernel(gp.x, r), lower=True, check_finite=False)
-    return solve_triangular(gp.L.T, V, lower=False, check_finite=False)
+    return solve_triangular(gp.L.T, gp.whitened(r), lower=False, check_finite=False)
 
 
 def verify_model(
