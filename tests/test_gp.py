@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cascal import FittedGP, Posterior, fit_gp, log_marginal_likelihood
+from cascal import FittedGP, InputError, Posterior, fit_gp, log_marginal_likelihood
 from cascal.gp import Objective
 from cascal.kernels import Constant, Matern32, Matern52, Periodic, SquaredExp
 from cascal.noise import Dense, Diagonal
@@ -406,6 +406,7 @@ def test_predict_refuses_std_and_cov(data):
         ("zero", "zero", 0.0),
         ("constant", "constant", "avg"),
         (0.3, "constant", 0.3),
+        ("offset", "offset", "shift"),
     ],
 )
 def test_prior_means(mean, name, value, data):
@@ -415,6 +416,9 @@ def test_prior_means(mean, name, value, data):
     assert fit.mean.name == name
     if value is None:
         mx, ms = x, XS
+    elif value == "shift":  # identity plus the average of y - x
+        c = float(np.mean(y - x))
+        mx, ms = x + c, XS + c
     else:
         c = float(np.mean(y)) if value == "avg" else value
         mx, ms = np.full(N, c), np.full(XS.size, c)
@@ -431,7 +435,30 @@ def test_prior_means(mean, name, value, data):
     assert lml == pytest.approx(expected_lml, rel=1e-11)
     # far from the data the prediction returns to the prior mean
     far = fit.predict(np.array([50.0]))[0]
-    assert far == pytest.approx(50.0 if value is None else ms[0], rel=1e-12, abs=1e-12)
+    prior = {None: 50.0, "shift": 50.0 + mx[0] - x[0]}.get(value, ms[0])  # type: ignore[arg-type]
+    assert far == pytest.approx(prior, rel=1e-12, abs=1e-12)
+
+
+def test_offset_mean_follows_a_zero_offset_the_identity_cannot():
+    """Two sensors whose zeros differ: with ``mean="offset"`` the fit is the
+    unshifted fit moved by 10 m (a shift of the targets changes nothing else); the identity
+    mean has to reach an offset of 1000 m with its variance and a length scale at its upper
+    bound, and misses the corrections by more than 0.1 mm."""
+    rng = np.random.default_rng(3)
+    x = np.linspace(0.0, 1.0, 40)
+    y = x + 1e-3 * np.sin(6 * x) + 2e-5 * rng.standard_normal(40)
+    base = fit_gp(x, y, mean="offset")
+    moved = fit_gp(x, y + 10.0, mean="offset")
+    for k, v in base.hyperparameters.items():
+        assert moved.hyperparameters[k] == pytest.approx(v, rel=1e-6), k
+    m0, s0 = base.predict(XS, return_std=True)
+    m1, s1 = moved.predict(XS, return_std=True)
+    assert_allclose(m1 - 10.0, m0, rtol=0, atol=1e-9)
+    assert_allclose(s1, s0, rtol=1e-5, atol=0)
+    assert base.optimization.at_bounds() == moved.optimization.at_bounds() == []
+    stuck = fit_gp(x, y + 1000.0)
+    assert stuck.optimization.at_bounds() == [("length_scale", "upper")]
+    assert np.max(np.abs(stuck.predict(XS) - 1000.0 - m0)) > 1e-4  # 0.1 mm off
 
 
 def test_fitted_gp_is_frozen(data):
@@ -526,6 +553,10 @@ def test_user_bounds_on_variance_or_noise_are_respected():
     assert held.hyperparameters["noise_variance"] == pytest.approx(lo, rel=1e-9)
     capped = fit_gp(x, y, bounds={"variance": (1e-8, 1e-6)})
     assert capped.hyperparameters["variance"] <= 1e-6 * (1 + 1e-9)
+    # and the fits say which bound set which value
+    assert free.optimization.at_bounds() == []
+    assert held.optimization.at_bounds() == [("noise_variance", "lower")]
+    assert capped.optimization.at_bounds() == [("variance", "upper")]
 
 
 def test_single_threaded_blas_nests_and_restores_the_setting(monkeypatch):
@@ -577,3 +608,34 @@ def test_fit_reuses_the_optimisers_last_factor(monkeypatch, data, dense, kernel,
     assert_allclose(fit.alpha, np.linalg.solve(Kt, y - x), rtol=1e-8)
     assert fit.log_marginal_likelihood == pytest.approx(dense_lml(y - x, Kt), rel=1e-12)
     assert fit.log_marginal_likelihood == pytest.approx(fit.optimization.value, rel=1e-12)
+
+
+def test_a_noise_below_the_first_floor_is_found():
+    """Rotary readings with 1e-4 degree noise on errors of 0.01 degree about a 360 degree
+    constant mean: the noise wants about 1e-12 of the signal variance, below the first
+    bound (1e-10), so the fit searches again below it. It must end inside, as high as a fit
+    that learns the noise variance directly from bounds far below (no profiling), and
+    learn the readings' noise."""
+    rng = np.random.default_rng(7)
+    x = np.linspace(0.0, 350.0, 60)
+    y = x + 0.01 * np.sin(np.deg2rad(2 * x)) + 0.003 * np.cos(np.deg2rad(5 * x))
+    y = y + 1e-4 * rng.standard_normal(60)
+    fit = fit_gp(x, y, mean="constant")
+    hp = fit.hyperparameters
+    assert 1e-13 < hp["noise_variance"] / hp["variance"] < 1e-10
+    assert fit.optimization.at_bounds() == []
+    assert 0.5e-4 < np.sqrt(hp["noise_variance"]) < 2e-4
+    free = fit_gp(x, y, mean="constant", bounds={"noise_variance": (1e-12, 1.0)})
+    assert fit.log_marginal_likelihood >= free.log_marginal_likelihood - 0.05
+    r = y - np.mean(y)
+    K = se(x, x, hp["length_scale"], hp["variance"]) + hp["noise_variance"] * np.eye(60)
+    assert fit.log_marginal_likelihood == pytest.approx(dense_lml(r, K), abs=0.05)
+
+
+def test_a_noise_variance_that_would_be_ignored_is_refused(data):
+    x, y = data
+    hp = {"length_scale": L0, "variance": V0, "noise_variance": 1e-4}
+    with pytest.raises(InputError, match="learn_noise=True"):
+        fit_gp(x, y, noise=1e-8, hyperparameters=hp)
+    fit = fit_gp(x, y, noise=1e-8, learn_noise=True, hyperparameters=hp)
+    assert fit.noise_variance == 1e-4

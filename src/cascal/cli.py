@@ -7,6 +7,7 @@ and without an output file. Library calls print nothing; this module prints.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -21,6 +22,7 @@ __all__ = ["main"]
 EXIT_BAD_INPUT = 2
 EXIT_FAILURE = 1  # an output could not be written, or some devices of a fleet failed
 EXIT_NOT_CONFORMING = 3  # cascal verify: a check point is not shown to conform to the MPE
+EXIT_BROKEN_PIPE = 141  # the reader of stdout left (as a shell reports a process SIGPIPE ended)
 
 
 def _cmd_example(args: argparse.Namespace) -> int:
@@ -183,7 +185,11 @@ def exclusions(specs: Sequence[str] | None, paths: Sequence[str | Path]) -> list
         if len(hits) != 1:
             given = ", ".join(str(p) for p in paths)
             what = "names several of" if hits else "is none of"
-            raise InputError(f"--exclude {spec}: {file} {what} the stage files ({given})")
+            named = [p for p in paths if Path(p).name == Path(file).name]
+            hint = ""
+            if not hits and len(named) == 1:  # the name alone, but a file of that path exists
+                hint = f"; {file} is another file here: write --exclude {named[0]}:{rows}"
+            raise InputError(f"--exclude {spec}: {file} {what} the stage files ({given}){hint}")
         out[hits[0]] |= _row_numbers(rows, spec, _line_count(paths[hits[0]]))
     return [frozenset(s) for s in out]
 
@@ -236,6 +242,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     model = fit_model(data, **_fit_kwargs(args))
     path = save_model(args.output, model)
     print("\n".join(model_lines(model)))
+    _report_bounds("fit", model)
     if args.no_screening:
         print(SKIPPED)
     else:
@@ -294,22 +301,25 @@ def _cmd_correct(args: argparse.Namespace) -> int:
 
 def _cmd_fit_devices(args: argparse.Namespace) -> int:
     """Fit the test bed once, then every device file in a folder against it, in parallel."""
-    from .cli_screening import SKIPPED, report_screening, screening_lines
+    from .cli_screening import SKIPPED, bound_line, report_screening, screening_lines
     from .io.atomic import write_text
     from .io.modelfile import save_model
     from .workflow import fit_devices, fit_model, screen_stages
 
     check_output(args.output, folder=True)
     folder = Path(args.devices)
-    files = sorted(folder.glob("*.csv")) if folder.is_dir() else []
+    if not folder.is_dir():
+        raise InputError(f"--devices {folder}: no such folder")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".csv" and p.is_file())
     if not files:
-        raise InputError(f"no *.csv device files in folder {folder}")
+        raise InputError(f"no .csv device files in folder {folder}")
     skip = exclusions(args.exclude, [args.testbed, *files])
     (testbed,) = _read_stages([args.testbed], args, skip[:1])
     out = Path(args.output)
     tb = fit_model([testbed], **_fit_kwargs(args))
     tb_model = save_model(out / "testbed.json", tb)
     print(f"Test bed fitted once: {tb_model}")
+    _report_bounds("fit-devices", tb)
     level = None if args.no_screening else _level(args)
     if level is None:
         print(SKIPPED)
@@ -342,6 +352,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
                 flush=True,
             )
             for line in screening_lines(r.screening, tb.unit) if r.screening else ():
+                warn("fit-devices", line)
+            for line in dict.fromkeys(bound_line(h, r.file, tb.unit) for h in r.bounds):
                 warn("fit-devices", line)
 
     jobs = args.jobs or os.cpu_count() or 1
@@ -395,6 +407,11 @@ def _read_stages(
     period = args.period if args.kernel == "periodic" else None
     if args.kernel == "periodic" and period is None:
         raise InputError("--kernel periodic needs --period (e.g. --period 360 for degrees)")
+    if args.kernel != "periodic" and args.period is not None:
+        raise InputError(
+            f"--period is the period of --kernel periodic, not of {args.kernel}: add "
+            "--kernel periodic for a rotary axis, or leave --period out"
+        )
     if args.period is not None and not (0 < args.period < float("inf")):
         raise InputError(f"--period: expected a positive number, got {args.period!r}")
     return [
@@ -429,7 +446,18 @@ def _fit_kwargs(args: argparse.Namespace) -> dict[str, object]:
         unit=args.unit,
         n_restarts=args.restarts,
         seed=args.seed,
+        mean=args.mean,
     )
+
+
+def _report_bounds(command: str, model) -> None:
+    """Warn of every stage hyperparameter the fit left at a bound of its range."""
+    from .cli_screening import bound_line
+    from .workflow import bound_hits
+
+    lines = (bound_line(h, model.sources[h.stage].file, model.unit) for h in bound_hits(model))
+    for line in dict.fromkeys(lines):  # one offset line per stage, whatever it stuck at
+        warn(command, line)
 
 
 def _level(args: argparse.Namespace) -> float:
@@ -448,6 +476,9 @@ def model_lines(model) -> list[str]:
     ):
         hp = getattr(m, "hyperparameters", {})
         text = ", ".join(f"{name} {v:.4g}" for name, v in hp.items()) or "lookup table"
+        mean = getattr(m, "mean", None)
+        if mean is not None and mean.name == "offset":
+            text += f", prior mean offset {mean.offset:+.6g} {model.unit}"
         left = f", {rows_text(src.excluded)} left out" if src.excluded else ""
         lines.append(f"Stage {k} ({src.file}: {src.rows} rows{left}, {counts.size} points): {text}")
     lo, hi = model.calibrated_range
@@ -522,6 +553,16 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
         type=float,
         default=None,
         help="period of --kernel periodic, e.g. 360 for degrees",
+    )
+    p.add_argument(
+        "--mean",
+        choices=("identity", "offset"),
+        default="identity",
+        help=(
+            "prior mean of each stage: identity (default; the reading is right until the data "
+            "say otherwise) or offset (identity plus the stage's mean correction, for sensors "
+            "whose zeros differ)"
+        ),
     )
     p.add_argument("--unit", type=unit, default="m", help="unit of the readings (default m)")
     p.add_argument(
@@ -738,15 +779,34 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _is_stdout(path: object) -> bool:
+    """Whether ``path`` (an output option's value) is this process's standard output."""
+    if not isinstance(path, str | os.PathLike):
+        return False
+    try:
+        a, b = os.stat(path), os.fstat(sys.stdout.fileno())
+    except (OSError, ValueError):
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cascal`` console script; returns the exit status."""
     args = _parser().parse_args(join_negative(list(sys.argv[1:] if argv is None else argv)))
     func: Callable[[argparse.Namespace], int] = args.func
-    try:
-        return func(args)
+    if getattr(args, "output", None) == "-" and Path("/dev/stdout").exists():
+        args.output = "/dev/stdout"
+    to_stdout = _is_stdout(getattr(args, "output", None))
+    try:  # an output written to stdout keeps it: the command's own lines go to stderr
+        with contextlib.redirect_stdout(sys.stderr) if to_stdout else contextlib.nullcontext():
+            return func(args)
     except CascalError as exc:
         print(f"cascal {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except BrokenPipeError:  # the reader of the output left (| head): stop quietly
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except OSError as exc:
         text = exc.strerror if exc.filename is None and exc.strerror else exc
         print(f"cascal {args.command}: error: {text}", file=sys.stderr)

@@ -114,7 +114,7 @@ def add_compare_parser(sub: argparse._SubParsersAction) -> None:
         description="Correct the same device readings with two models of one device (old, "
         "then new) over their common calibrated range and report how much the correction "
         "changed, against the uncertainty the change would have if the device had not changed "
-        "(a test-bed calibration both share counted once) and a simultaneous 95 %% band over "
+        "(a test-bed calibration both share counted once) and a simultaneous 95 % band over "
         "the range; with --max-change, exit status 3 when it changed by more.",
     )
     p.add_argument("old", metavar="OLD.json", help="the earlier calibration")

@@ -46,7 +46,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         f"({model.data[0].name}) from {mp.candidates} candidate readings in {spans} {unit}; "
         f"each measurement's standard deviation {np.sqrt(plan.noise_variance):.3g} {unit}."
     )
-    print(f"Lowered: {mp.target} ({plan.where.size} readings).")
+    print(f"Lowered: {mp.target} ({plan.where.size} points).")
     print(f"{'order':>5}  {'test-bed reading':>18}  {'RMS u after':>12}  {'largest u after':>15}")
     print(f"{'now':>5}  {'':>18}  {plan.u_rms[0]:12.4g}  {plan.u_max[0]:15.4g}")
     for k, p in enumerate(plan.positions, 1):

@@ -1,4 +1,5 @@
-"""Outlier screening's findings as lines for ``cascal fit`` and ``cascal fit-devices``."""
+"""Outlier screening's findings, and hyperparameters fitted at a bound, as lines for
+``cascal fit`` and ``cascal fit-devices``."""
 
 from __future__ import annotations
 
@@ -6,9 +7,9 @@ import shlex
 
 from .cli import rows_text
 from .screening import LEVEL, min_points
-from .workflow import StageScreening
+from .workflow import BoundHit, StageScreening
 
-__all__ = ["SKIPPED", "report_screening", "screening_lines", "screening_summary"]
+__all__ = ["SKIPPED", "bound_line", "report_screening", "screening_lines", "screening_summary"]
 
 #: What ``fit`` and ``fit-devices`` print in place of the summary with --no-screening.
 SKIPPED = "Outlier screening: skipped (--no-screening)"
@@ -105,3 +106,47 @@ def report_screening(command: str, checks: list[StageScreening], unit: str, what
         for line in screening_lines(check, unit):
             warn(command, line)
     print(screening_summary(checks, what))
+
+
+_WORDS = {"noise_variance": "learned noise", "noise_ratio": "noise ratio"}
+
+
+def bound_line(hit: BoundHit, file: str, unit: str) -> str:
+    """What a hyperparameter at a bound of its range means for the stage of ``file``;
+    where the corrections are mostly one offset, that is the cause named."""
+    n = f"{hit.points} points"
+    if abs(hit.offset) > 3.0 * hit.spread:
+        return (
+            f"{file}: the fit's {_WORDS.get(hit.parameter, hit.parameter)} is stuck at a "
+            f"bound of its range: the corrections "
+            f"average {hit.offset:+.6g} {unit}, far more than they vary ({hit.spread:.3g} "
+            f"{unit}), as when the two sensors' zeros differ; the prior mean (identity) "
+            "cannot follow that, so the fit and its u are wrong: fit with --mean offset, or "
+            "zero the readings"
+        )
+    if hit.parameter.endswith("length_scale"):
+        return (
+            f"{file}: the fitted length scale sits at its lower bound ({hit.value:.3g} {unit}, "
+            "half the closest spacing of the readings): the corrections vary faster than "
+            "the points show, or the two columns do not belong together; u between the "
+            "points cannot be trusted"
+        )
+    if hit.parameter in ("noise_variance", "noise_ratio") and hit.side == "upper":
+        return (
+            f"{file}: the learned noise sits at its upper bound (10 times the corrections' "
+            f"variance): the fit takes the readings for noise about the prior mean, and {n} "
+            "cannot show otherwise; u cannot be trusted: measure more points"
+        )
+    if hit.parameter in ("noise_variance", "noise_ratio"):
+        return (
+            f"{file}: the learned noise sits at its lower bound: the fit passes through every "
+            f"point, and {n} cannot tell the readings' noise from the map; u is likely too "
+            "small: measure more points, or repeat readings (their spread gives a known noise)"
+        )
+    where = "upper" if hit.side == "upper" else "lower"
+    why = (
+        "the corrections are larger than the fit can follow"
+        if hit.side == "upper"
+        else "the fit puts every deviation from the prior mean down to noise"
+    )
+    return f"{file}: the map's variance sits at its {where} bound: {why}; u cannot be trusted"

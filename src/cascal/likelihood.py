@@ -55,6 +55,13 @@ class Objective:
             raise ValueError("profiling needs a scaled kernel, no known noise, learned noise")
 
     @property
+    def names(self) -> tuple[str, ...]:
+        """Names of the entries of ``theta`` (``noise_ratio``: noise_variance / variance)."""
+        if self.profile:
+            return ("length_scale", "noise_ratio")
+        return tuple(self.kernel.names) + (("noise_variance",) if self.learn_noise else ())
+
+    @property
     def dim(self) -> int:
         if self.profile:
             return 2

@@ -1,4 +1,5 @@
-"""Prior mean functions m(x) of a calibration map: identity, zero or a constant."""
+"""Prior mean functions m(x) of a calibration map: identity, identity plus an offset, zero
+or a constant."""
 
 from __future__ import annotations
 
@@ -27,15 +28,18 @@ class Mean:
 
     @property
     def name(self) -> str:
-        if self.slope == 1.0 and self.offset == 0.0:
-            return "identity"
+        if self.slope == 1.0:
+            return "identity" if self.offset == 0.0 else "offset"
         if self.slope == 0.0:
             return "zero" if self.offset == 0.0 else "constant"
         return "linear"
 
 
-def make_mean(spec: str | float | Mean, y: np.ndarray | None = None) -> Mean:
-    """Mean from ``"identity"``, ``"zero"``, ``"constant"`` (mean of ``y``) or a number."""
+def make_mean(
+    spec: str | float | Mean, y: np.ndarray | None = None, x: np.ndarray | None = None
+) -> Mean:
+    """Mean from ``"identity"``, ``"offset"`` (identity plus the mean of ``y - x``: two
+    sensors whose zeros differ), ``"zero"``, ``"constant"`` (mean of ``y``) or a number."""
     if isinstance(spec, Mean):
         return spec
     if isinstance(spec, int | float) and not isinstance(spec, bool):
@@ -45,8 +49,12 @@ def make_mean(spec: str | float | Mean, y: np.ndarray | None = None) -> Mean:
         return Mean(1.0, 0.0)
     if key == "zero":
         return Mean(0.0, 0.0)
-    if key == "constant":
-        if y is None:
-            raise InputError("mean='constant' needs the targets to take their average")
-        return Mean(0.0, float(np.mean(y)))
-    raise InputError(f"unknown mean {spec!r}; expected 'identity', 'zero', 'constant' or a number")
+    if key in ("constant", "offset"):
+        if y is None or (key == "offset" and x is None):
+            raise InputError(f"mean={key!r} needs the positions and targets to take their average")
+        if key == "constant":
+            return Mean(0.0, float(np.mean(y)))
+        return Mean(1.0, float(np.mean(np.asarray(y, float) - np.asarray(x, float))))
+    raise InputError(
+        f"unknown mean {spec!r}; expected 'identity', 'offset', 'zero', 'constant' or a number"
+    )

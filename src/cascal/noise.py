@@ -116,7 +116,10 @@ class Dense(Noise):
         if wmin < -max(self.tol * float(w.max()), self.atol, np.finfo(float).tiny):
             raise InputError(
                 f"dense noise: expected a positive semi-definite covariance, got an eigenvalue "
-                f"of {wmin:.3g} against a largest of {float(w.max()):.3g}"
+                f"of {wmin:.3g} against a largest of {float(w.max()):.3g}; a posterior "
+                "covariance k(x, x) - V^T V carries round-off of about eps times the prior "
+                "variance: give its factor (FittedGP.posterior_factor, Dense.from_factor) "
+                "or an atol of that size"
             )
         neg = w < 0
         if np.any(neg):

@@ -25,6 +25,8 @@ __all__ = ["OptimResult", "Start", "latin_hypercube", "maximize", "newton_maximi
 
 #: Starts are at least this far apart in the unit box of the log bounds.
 _RADIUS = 0.2
+#: An optimum this close to a bound (log units) is at it: :meth:`OptimResult.at_bounds`.
+BOUND_TOL = 1e-3
 #: First trust radius of a Newton run, log units.
 _RADIUS0 = 2.0
 #: A run this close (log units, every parameter) to an optimum already found stops there.
@@ -51,6 +53,23 @@ class OptimResult:
     starts: tuple[Start, ...]
     n_candidates: int
     n_probes: int = 0
+    bounds: np.ndarray | None = None
+    names: tuple[str, ...] = ()
+
+    def at_bounds(self, tol: float = BOUND_TOL) -> list[tuple[str, str]]:
+        """``(name, "lower" | "upper")`` for every parameter of ``theta`` within ``tol`` (log
+        units) of its bound: the likelihood would go on rising past it, so the bound, not
+        the data, set that value. Empty when the bounds are unknown (a loaded model)."""
+        if self.bounds is None:
+            return []
+        names = self.names or tuple(f"theta[{i}]" for i in range(self.theta.size))
+        out = []
+        for name, t, (lo, hi) in zip(names, self.theta, self.bounds, strict=True):
+            if t - lo <= tol:
+                out.append((name, "lower"))
+            elif hi - t <= tol:
+                out.append((name, "upper"))
+        return out
 
     @property
     def n_evals(self) -> int:
@@ -299,7 +318,9 @@ def maximize(
             if _safe(value, t0) > best.value:
                 starts.append(newton_maximize(value_grad_hess, t0, bounds, known=starts))
                 best = _best(starts)
-        return OptimResult(best.theta, best.value, tuple(starts), m, len(probes or ()))
+        return OptimResult(
+            best.theta, best.value, tuple(starts), m, len(probes or ()), bounds=bounds
+        )
     from scipy.optimize import minimize  # here: importing it costs 0.2 s at every CLI start
 
     unit = np.column_stack([np.zeros(len(lo)), np.ones(len(lo))])
@@ -316,7 +337,7 @@ def maximize(
             )
         )
     best = _best(starts)
-    return OptimResult(theta=best.theta, value=best.value, starts=tuple(starts), n_candidates=m)
+    return OptimResult(best.theta, best.value, tuple(starts), m, bounds=bounds)
 
 
 def _best(starts: list[Start]) -> Start:

@@ -148,7 +148,8 @@ def stage_views(model: CalibrationModel) -> list[StageView]:
                 band=Z95 * std,
                 residuals=used.y - fit_x,
                 residual_band=Z95 * np.sqrt(np.clip(known + m.noise_variance, 0.0, None)),
-                hyperparameters=m.hyperparameters,
+                hyperparameters=m.hyperparameters
+                | ({"prior mean offset": m.mean.offset} if m.mean.name == "offset" else {}),
                 log_marginal_likelihood=m.log_marginal_likelihood,
                 screening=screen(m),
             )

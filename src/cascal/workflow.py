@@ -32,10 +32,12 @@ from .verification import COVERAGE_FACTOR, Comparison, Verification, compare, ve
 
 __all__ = [
     "COVERAGE_FACTOR",
+    "BoundHit",
     "Correction",
     "DeviceResult",
     "MeasurementPlan",
     "StageScreening",
+    "bound_hits",
     "change_covariance",
     "compare_models",
     "compensation",
@@ -87,6 +89,7 @@ def fit_model(
     n_restarts: int = 5,
     seed: int | None = 0,
     prefix: CalibrationModel | None = None,
+    mean: str = "identity",
 ) -> CalibrationModel:
     """Fit a cascade to stage files, reference end first.
 
@@ -101,6 +104,8 @@ def fit_model(
             above come from ``prefix``, so a device fitted on a prefix equals a full fit.
         prefix: A fitted one-stage model (a test bed) that ``stages`` continue; its stage is
             reused, not refitted.
+        mean: Prior mean of each GP stage: ``identity`` (the paper's) or ``offset``
+            (identity plus the stage's mean correction: sensors whose zeros differ).
 
     Raises:
         InputError: A stage's upper readings leave the range calibrated by the stage above
@@ -122,6 +127,7 @@ def fit_model(
         all_stages,
         method,
         kernel=kernel,
+        mean=mean,
         n_restarts=n_restarts,
         seed=seed,
         period=period,
@@ -208,6 +214,61 @@ def screen_stages(
         if data.raw_x is not None and data.raw_y is not None:
             spread = screen_repeats(data.raw_x, data.raw_y, level=level)
         out.append(StageScreening(k, data, fit, spread, problem, level))
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class BoundHit:
+    """A fitted stage hyperparameter at a bound of its search range (see
+    :meth:`~cascal.optimize.OptimResult.at_bounds`): the bound set it, not the data.
+
+    Attributes:
+        stage: Index of the stage in the model.
+        parameter: ``length_scale``, ``variance``, ``noise_variance`` or ``noise_ratio``
+            (noise_variance / variance), as named by the fit.
+        side: ``"lower"`` or ``"upper"``.
+        value: The parameter's value (unit of the readings, squared for variances).
+        points: Points of the stage.
+        offset: Mean of the stage's corrections (targets minus the prior mean), unit.
+        spread: Their standard deviation about that mean, unit.
+    """
+
+    stage: int
+    parameter: str
+    side: str
+    value: float
+    points: int
+    offset: float
+    spread: float
+
+
+def bound_hits(model: CalibrationModel, *, first: int = 0) -> list[BoundHit]:
+    """The hyperparameters of stages ``first``, ... of a freshly fitted model that ended
+    at a bound, where that makes u doubtful: a length scale at its lower bound (the map
+    varies faster than the points show), a variance at either bound, the learned noise at
+    its upper bound (the readings taken for noise) or, with no known noise, at its lower
+    bound (the fit interpolates, the noise unestimated). A length scale at its upper bound
+    is listed only where the corrections are mostly one offset (their mean beyond 3 times
+    their spread: the identity mean reaching for it), else it is a straight correction; a
+    learned white noise at its lower bound on top of a known noise is not listed. Empty for
+    a loaded model (its bounds are not stored)."""
+    out = []
+    for k in range(first, len(model.fitted.models)):
+        gp = model.fitted.models[k]
+        if not isinstance(gp, FittedGP) or gp.optimization is None:
+            continue
+        r = gp.y - gp.mean(gp.x)
+        hp = gp.hyperparameters
+        for name, side in gp.optimization.at_bounds():
+            offset = abs(float(r.mean())) > 3.0 * float(r.std())
+            if name.endswith("length_scale") and side == "upper" and not offset:
+                continue
+            noise = name in ("noise_variance", "noise_ratio")
+            if noise and side == "lower" and gp.noise is not None:
+                continue
+            value = hp[name] if name in hp else hp["noise_variance"] / hp["variance"]
+            hit = BoundHit(k, name, side, float(value), gp.x.size, float(r.mean()), float(r.std()))
+            out.append(hit)
     return out
 
 
@@ -530,7 +591,8 @@ def plan_measurements(
         plan = plan_reference(
             testbed, candidates, k, lower=target, noise_variance=s2, progress=progress
         )
-        what = f"stage 1 ({name})'s uncertainty over its readings"
+        span1 = f"[{grid[0]:.9g}, {grid[-1]:.9g}] {unit}"
+        what = f"stage 1 ({name})'s uncertainty over its calibrated range {span1}"
         return MeasurementPlan(plan, intervals, candidates.size, what, name)
     plan = plan_reference(testbed, candidates, k, where=upper, noise_variance=s2, progress=progress)
     what = f"stage 0's uncertainty at the test-bed readings of stage 1 ({name})"
@@ -552,6 +614,7 @@ class DeviceResult:
         calibrated_range: Smallest and largest device reading calibrated.
         points: Points of the device stage (after averaging repeats).
         screening: Outlier screening of the device's file, or None when skipped.
+        bounds: The device stage's hyperparameters that ended at a bound (:func:`bound_hits`).
     """
 
     device: str
@@ -564,6 +627,7 @@ class DeviceResult:
     calibrated_range: tuple[float, float] = (float("nan"), float("nan"))
     points: int = 0
     screening: StageScreening | None = None
+    bounds: tuple[BoundHit, ...] = ()
 
 
 def summarize_device(model: CalibrationModel) -> dict[str, object]:
@@ -596,7 +660,7 @@ def fit_devices(
         devices: Device stage files (device readings, test-bed readings).
         outdir: Folder for the device models, ``<device stem>.json``.
         options: ``x_column``, ``y_column`` for the files; ``method``, ``kernel``, ``period``,
-            ``unit``, ``n_restarts``, ``seed`` as for :func:`fit_model` (every device gets
+            ``unit``, ``n_restarts``, ``seed``, ``mean`` as for :func:`fit_model` (every device gets
             the same seed, so its model equals ``cascal fit TESTBED DEVICE`` with it).
             ``exclude``: file rows to leave out, by device file path as in ``devices``;
             ``screening_level``: false-alarm level of the outlier screening of each device
@@ -651,7 +715,7 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
         )
         fit_opts = {
             k: options[k]
-            for k in ("method", "kernel", "period", "unit", "n_restarts", "seed")
+            for k in ("method", "kernel", "period", "unit", "n_restarts", "seed", "mean")
             if k in options
         }
         model = fit_model([data], prefix=prefix, **fit_opts)  # type: ignore[arg-type]
@@ -681,4 +745,5 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
         calibrated_range=model.calibrated_range,
         points=int(data.x.size),
         screening=check,
+        bounds=tuple(bound_hits(model, first=len(model.fitted.models) - 1)),
     )

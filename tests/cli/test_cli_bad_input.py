@@ -32,6 +32,11 @@ FIT_CASES = {
     "too_few_rows": ("a,b\n1,1\n2,2\n", [], ["row 3", "at least 3 data rows", "got 2"]),
     "huge_cell": (GOOD + "5," + "6" * 200_000 + "\n", [], ["row 6", "not readable CSV"]),
     "stray_cr": ("a,b\n1,1\n2\r,2\n3,3\n", [], ["row 3", "missing cells"]),
+    "period_without_periodic": (
+        GOOD,
+        ["--period", "360"],
+        ["--period is the period of --kernel periodic, not of se"],
+    ),
     "period_too_short": (
         GOOD,
         ["--kernel", "periodic", "--period", "2"],
@@ -52,6 +57,7 @@ FIT_CASES = {
 }
 NO_FILE_NAMED = {
     "periodic_without_period",
+    "period_without_periodic",
     "negative_period",
     "export_bad_name",
     "export_bad_tolerance",
@@ -130,6 +136,11 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
         ["fit-devices", bad_tb, "--devices", files[0].parent, "-o", dest], dest, ["row 4"],
         bad_tb.name,
     )  # fmt: skip
+    dest = tmp / "fleet_no_folder"
+    out["fleet_no_folder"] = (
+        ["fit-devices", files[0], "--devices", tmp / "nowhere", "-o", dest], dest,
+        ["--devices", "no such folder"], "nowhere",
+    )  # fmt: skip
     # Compensation tables: a file type that is neither, a name C cannot take, a tolerance
     # that is no positive number, an edited model.
     for name, dest, extra, words in [
@@ -191,6 +202,7 @@ ALL = [
     "readings_out_of_range_refused",
     "report_edited_model",
     "fleet_bad_testbed",
+    "fleet_no_folder",
     "study_corrupt_database",
     "output_is_a_folder",
     "output_under_a_file",

@@ -155,7 +155,8 @@ def test_an_existing_file_that_is_no_stage_file_is_refused(linear_files, tmp_pat
     assert res.returncode == 2
     assert f"--exclude {files[0].name}:41: {files[0].name} is none of the stage files" in (
         res.stderr
-    )
+    )  # and the message says which stage file has that name
+    assert f"is another file here: write --exclude {files[0]}:41" in res.stderr
 
 
 def test_fit_devices_library_matches_exclusions_by_path(spoiled, tmp_path):

@@ -138,3 +138,75 @@ def test_a_far_outlier_keeps_the_other_rows_digits(linear_files, tmp_path):
     got = np.array([float(r.split(",")[1]) for r in rows[:2]])
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
     assert rows[2].endswith(",1")
+
+
+def test_a_zero_offset_is_named_and_fitted_with_mean_offset(linear_files, linear_case, tmp_path):
+    """The device's zero 10 m off its test bed's: the identity prior mean cannot follow, the
+    fit says so and points to --mean offset, with which the model is the unshifted one,
+    moved by 10 m."""
+    (ref, dev), _ = linear_files
+    shifted = tmp_path / "device_offset.csv"
+    head, *rows = dev.read_text().splitlines()
+    moved = [f"{float(a) + 10.0!r},{b}" for a, b in (r.split(",") for r in rows)]
+    shifted.write_text("\n".join([head, *moved]) + "\n")
+    stuck = run_cascal("fit", ref, shifted, "-o", tmp_path / "stuck.json", "--no-screening")
+    assert stuck.returncode == 0, stuck.stderr
+    assert "device_offset.csv: the fit's variance is stuck at a bound" in stuck.stderr
+    assert "corrections average -10" in stuck.stderr and "--mean offset" in stuck.stderr
+    fits = {}
+    for name, stage in (("plain", dev), ("offset", shifted)):
+        out = tmp_path / f"{name}.json"
+        res = run_cascal("fit", ref, stage, "-o", out, "--mean", "offset", "--no-screening")
+        assert res.returncode == 0 and "stuck" not in res.stderr, res.stderr
+        fits[name] = load_model(out)
+    assert "prior mean offset -10" in res.stdout
+    r = linear_case.readings
+    a, b = correct(fits["plain"], r), correct(fits["offset"], r + 10.0)
+    inside = ~a.out_of_range
+    np.testing.assert_allclose(b.corrected[inside], a.corrected[inside], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(b.u[inside], a.u[inside], rtol=1e-4)
+    err = a.corrected[inside] - linear_case.truth[inside]
+    assert np.sqrt(np.mean(err**2)) < 0.1 * np.sqrt(np.mean((r - linear_case.truth)[inside] ** 2))
+
+
+def test_too_few_reference_points_are_named(tmp_path):
+    """Three reference points: the fit takes them for noise about the identity (its noise
+    and length scale end at their bounds), and says that u cannot be trusted."""
+    ref, dev = tmp_path / "ref.csv", tmp_path / "dev.csv"
+    ref.write_text("testbed,reference\n0,0.0001\n0.5,0.4990\n1.0,1.0002\n")
+    dev.write_text("device,testbed\n0.1,0.1003\n0.5,0.5002\n0.9,0.8995\n")
+    res = run_cascal("fit", ref, dev, "-o", tmp_path / "m.json")
+    assert res.returncode == 0, res.stderr
+    assert "ref.csv: the learned noise sits at its upper bound" in res.stderr
+    assert "ref.csv: the fitted length scale sits at its lower bound (0.25 m" in res.stderr
+    assert "dev.csv: the fitted length scale sits at its lower bound (0.2 m" in res.stderr
+
+
+@pytest.mark.parametrize("dest", ["-", "/dev/stdout"])
+def test_a_table_written_to_stdout_keeps_it_to_itself(linear_model, linear_files, dest):
+    """``-o -`` (or /dev/stdout) writes the CSV to standard output and the command's own
+    lines to standard error, so the output can be piped on."""
+    _, readings = linear_files
+    res = run_cascal("correct", linear_model, readings, "-o", dest)
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert lines[0] == "reading,corrected,u,U,out_of_range"
+    assert len(lines) == len(readings.read_text().splitlines())
+    assert "Corrected " in res.stderr and "Corrected" not in res.stdout
+
+
+def test_a_reader_that_leaves_early_ends_the_command_quietly(linear_model):
+    """``cascal info MODEL | true``: the reader is gone before anything is written; the
+    command stops without a message, with the status a shell gives a process SIGPIPE ended."""
+    import shlex
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(sys.executable).with_name("cascal")
+    cmd = f"{shlex.quote(str(script))} info {shlex.quote(str(linear_model))} | true"
+    res = subprocess.run(
+        ["bash", "-c", cmd + "; echo ${PIPESTATUS[0]}"], capture_output=True, text=True, timeout=60
+    )
+    assert res.stdout.strip() == "141", (res.stdout, res.stderr)
+    assert res.stderr == ""

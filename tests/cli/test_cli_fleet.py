@@ -113,3 +113,23 @@ def test_unexpected_failure_skips_one_device_and_removes_its_old_model(fleet, mo
     results = workflow.fit_devices(out / "testbed.json", devices, again, options=options)
     assert results[0].error == "unexpected ZeroDivisionError: boom" and not stale.exists()
     assert results[1].error is None and (again / f"{devices[1].stem}.json").exists()
+
+
+def test_a_device_with_another_zero_is_named_and_fits_with_mean_offset(fleet, tmp_path):
+    """A device whose readings are 10 m off its test bed's: the fleet warns of that device
+    (its fit is stuck at a bound) and --mean offset fits it."""
+    _, tb, folder, _, _ = fleet
+    devices = tmp_path / "devices"
+    devices.mkdir()
+    head, *rows = (folder / "device01.csv").read_text().splitlines()
+    moved = [f"{float(a) + 10.0!r},{b}" for a, b in (r.split(",") for r in rows)]
+    (devices / "far.CSV").write_text("\n".join([head, *moved]) + "\n")  # any case of .csv
+    runs = {}
+    for mean in ("identity", "offset"):
+        runs[mean] = run_cascal("fit-devices", tb, "--devices", devices, "-o", tmp_path / mean,
+                                "--jobs", "1", "--restarts", "2", "--mean", mean)  # fmt: skip
+        assert runs[mean].returncode == 0, runs[mean].stderr
+    stuck = runs["identity"].stderr
+    assert "far.CSV: the fit's variance is stuck at a bound" in stuck, stuck
+    assert "--mean offset" in stuck
+    assert "stuck" not in runs["offset"].stderr, runs["offset"].stderr
