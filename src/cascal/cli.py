@@ -242,6 +242,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     model = fit_model(data, **_fit_kwargs(args))
     path = save_model(args.output, model)
     print("\n".join(model_lines(model)))
+    _report_chain("fit", data)
     _report_bounds("fit", model)
     if args.no_screening:
         print(SKIPPED)
@@ -448,6 +449,24 @@ def _fit_kwargs(args: argparse.Namespace) -> dict[str, object]:
         seed=args.seed,
         mean=args.mean,
     )
+
+
+def _report_chain(command: str, data: Sequence) -> None:
+    """Warn where two consecutive stage files share exactly one column name in the same
+    place, as when one of them has its two columns swapped: each file's second column should
+    be the first column's sensor of the file before it."""
+    from itertools import pairwise
+
+    for up, low in pairwise(data):
+        (xu, yu), (xl, yl) = up.source.columns, low.source.columns
+        if (xl.lower() == xu.lower()) != (yl.lower() == yu.lower()):
+            warn(
+                command,
+                f"{low.source.file}: its columns ({xl}, {yl}) follow {up.source.file}'s "
+                f"({xu}, {yu}), sharing a name in the same place; its second column should "
+                f"hold the readings of {xu}, the sensor calibrated one stage up: are one "
+                "file's columns swapped? (--x-column and --y-column pick them by name)",
+            )
 
 
 def _report_bounds(command: str, model) -> None:

@@ -50,7 +50,12 @@ FIT_CASES = {
     "not_increasing": (
         "a,b\n1,1\n2,2.5\n3,2.4\n4,4\n",
         [],
-        ["row 4", "column 'b'", "not above", "(row 3)", "one-to-one"],
+        ["row 4", "column 'b'", "not above", "(row 3)", "one-to-one", "a mistyped cell"],
+    ),
+    "noisier_than_the_steps": (
+        "a,b\n1,1\n2,2.5\n3,2.4\n4,4\n5,5.2\n6,5.1\n7,7\n",
+        [],
+        ["row 4", "not above", "2 of its 6 steps go back", "closer together than"],
     ),
     "periodic_without_period": (GOOD, ["--kernel", "periodic"], ["--period"]),
     "negative_period": (GOOD, ["--kernel", "periodic", "--period", "-3"], ["--period", "positive"]),

@@ -210,3 +210,26 @@ def test_a_reader_that_leaves_early_ends_the_command_quietly(linear_model):
     )
     assert res.stdout.strip() == "141", (res.stdout, res.stderr)
     assert res.stderr == ""
+
+
+def test_a_stage_file_with_its_columns_swapped_is_named(tmp_path):
+    """The device file's header says (testbed, device): the chain reference -> testbed ->
+    device then reads backwards, which the names show; generic names say nothing."""
+    t = np.linspace(0.0, 1.0, 30)
+    testbed = t + 1e-3 * np.sin(5 * t)
+    ref = tmp_path / "ref.csv"
+    pairs = zip(testbed.tolist(), t.tolist(), strict=True)
+    ref.write_text("testbed,reference\n" + "".join(f"{a!r},{b!r}\n" for a, b in pairs))
+    d = np.linspace(0.1, 0.9, 25)
+    swapped = tmp_path / "dev.csv"
+    rows = zip((d + 2e-3 * np.cos(3 * d)).tolist(), d.tolist(), strict=True)
+    swapped.write_text("testbed,device\n" + "".join(f"{a!r},{b!r}\n" for a, b in rows))
+    res = run_cascal("fit", ref, swapped, "-o", tmp_path / "m.json", "--no-screening")
+    assert res.returncode == 0, res.stderr
+    assert "dev.csv: its columns (testbed, device) follow " in res.stderr
+    assert "ref.csv's (testbed, reference), sharing a name in the same place" in res.stderr
+    assert "are one file's columns swapped?" in res.stderr
+    for f in (ref, swapped):  # the same files with generic headers: no warning
+        f.write_text("x,y\n" + f.read_text().split("\n", 1)[1])
+    res = run_cascal("fit", ref, swapped, "-o", tmp_path / "g.json", "--no-screening")
+    assert res.returncode == 0 and "swapped" not in res.stderr, res.stderr

@@ -241,10 +241,17 @@ def read_stage(
             mean = f" (the mean of its {n} readings)" if n > 1 else ""
             return f"{yn} {float(rep.y[j])!r} at {xn} {float(rep.x[j])!r}{mean}"
 
+        hint = (
+            f"; {bad.size} of its {rep.y.size - 1} steps go back: are the points closer "
+            "together than the readings' noise? Then repeat readings at fewer, wider-spaced "
+            "positions (repeats are averaged)"
+            if bad.size > 1
+            else "; a mistyped cell, or rows out of step?"
+        )
         raise InputError(
             f"{value(k + 1)} is not above {value(k)} (row {int(rows[k])}); "
             "the more accurate reading must increase with the calibrated one (one-to-one, "
-            "the paper's bijectivity assumption)",
+            f"the paper's bijectivity assumption){hint}",
             file=name,
             row=int(rows[k + 1]),
             column=yn,
