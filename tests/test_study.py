@@ -235,6 +235,20 @@ def test_a_study_grows_without_rerunning_stored_trials(tmp_path):
     assert head.ran == 0 and _costs(head) == _costs(small)[:2]
 
 
+def test_a_folder_of_another_versions_numbers_is_not_extended(tmp_path):
+    """Trials stored by a cascal that computes other numbers (here: trial 0's J of the
+    lookup tables one part in 1e12 off) are not mixed with this one's; summarising what is
+    stored still works."""
+    run_study(tmp_path, trials=2, config=CONFIG, workers=1)
+    db = tmp_path / "study.sqlite"
+    _sqlite(db, "UPDATE trials SET j_lut = j_lut * (1 + 1e-12) WHERE idx=0")
+    before = db.read_bytes()
+    with pytest.raises(InputError, match=r"trial 0: J_lut .* there, .* now\); adding trials"):
+        run_study(tmp_path, trials=3, config=CONFIG, workers=1)
+    assert db.read_bytes() == before
+    assert run_study(tmp_path, trials=2, config=CONFIG, workers=1).ran == 0
+
+
 def test_bad_counts_and_scheduler_are_input_errors(tmp_path):
     with pytest.raises(InputError, match="at least 1 trial"):
         run_study(tmp_path / "a", trials=0, config=CONFIG, workers=1)

@@ -23,7 +23,7 @@ from .errors import InputError
 from .gp import pin_blas
 from .io.atomic import save_figure, write_text
 from .io.studydb import StudyDB
-from .montecarlo import StudyConfig, TrialResult, run_chunk, summarize
+from .montecarlo import StudyConfig, TrialResult, run_chunk, run_trial, summarize
 
 __all__ = ["StudyOutcome", "run_study", "trials_table"]
 
@@ -88,6 +88,8 @@ def run_study(
         raise
     try:
         pending = sorted(set(range(trials)) - db.done())
+        if pending:
+            _check_same_numbers(config, db.first(), folder)
         n_workers = workers or multiprocessing.cpu_count()
         size = chunk or max(1, min(50, len(pending) // (8 * n_workers) or 1))
         chunks = [pending[i : i + size] for i in range(0, len(pending), size)]
@@ -116,6 +118,22 @@ def run_study(
     save_figure(fig, folder / "cost_distribution.png", dpi=130)
     save_figure(fig, folder / "cost_distribution.svg")
     return StudyOutcome(folder, results, summary, len(pending))
+
+
+def _check_same_numbers(config: StudyConfig, stored: TrialResult | None, folder: Path) -> None:
+    """Refuse to add trials to a folder whose first stored trial this cascal computes
+    differently (another version): the study would mix two versions' numbers."""
+    if stored is None:
+        return
+    fresh = run_trial(config, stored.index)
+    if fresh.cost != stored.cost or fresh.fits != stored.fits or fresh.redraws != stored.redraws:
+        m = next((m for m in config.methods if fresh.cost[m] != stored.cost[m]), None)
+        what = f"J_{m} {stored.cost[m]!r} there, {fresh.cost[m]!r} now" if m else "its fits"
+        raise InputError(
+            f"{folder}: its trials were computed by a cascal that gives other numbers (trial "
+            f"{stored.index}: {what}); adding trials would mix the two: choose another --out "
+            "folder, or remove this one to start again"
+        )
 
 
 def _execute(config, chunks, executor, n_workers):
