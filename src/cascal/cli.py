@@ -242,7 +242,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     model = fit_model(data, **_fit_kwargs(args))
     path = save_model(args.output, model)
     print("\n".join(model_lines(model)))
-    _report_chain("fit", data)
+    _report_chain("fit", model.sources)
     _report_bounds("fit", model)
     if args.no_screening:
         print(SKIPPED)
@@ -356,6 +356,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
                 warn("fit-devices", line)
             for line in dict.fromkeys(bound_line(h, r.file, tb.unit) for h in r.bounds):
                 warn("fit-devices", line)
+            if r.source is not None:
+                _report_chain("fit-devices", [tb.sources[0], r.source])
 
     jobs = args.jobs or os.cpu_count() or 1
     results = fit_devices(
@@ -451,21 +453,22 @@ def _fit_kwargs(args: argparse.Namespace) -> dict[str, object]:
     )
 
 
-def _report_chain(command: str, data: Sequence) -> None:
-    """Warn where two consecutive stage files share exactly one column name in the same
-    place, as when one of them has its two columns swapped: each file's second column should
-    be the first column's sensor of the file before it."""
+def _report_chain(command: str, sources: Sequence) -> None:
+    """Warn where two consecutive stage files (their :class:`~cascal.io.data.Source`) share
+    exactly one column name in the same place, as when one of them has its two columns
+    swapped: each file's second column should be the first column's sensor of the file
+    before it."""
     from itertools import pairwise
 
-    for up, low in pairwise(data):
-        (xu, yu), (xl, yl) = up.source.columns, low.source.columns
+    for up, low in pairwise(sources):
+        (xu, yu), (xl, yl) = up.columns, low.columns
         if (xl.lower() == xu.lower()) != (yl.lower() == yu.lower()):
             warn(
                 command,
-                f"{low.source.file}: its columns ({xl}, {yl}) follow {up.source.file}'s "
-                f"({xu}, {yu}), sharing a name in the same place; its second column should "
-                f"hold the readings of {xu}, the sensor calibrated one stage up: are one "
-                "file's columns swapped? (--x-column and --y-column pick them by name)",
+                f"{low.file}: its columns ({xl}, {yl}) follow {up.file}'s ({xu}, {yu}), "
+                f"sharing a name in the same place; its second column should hold the "
+                f"readings of {xu}, the sensor calibrated one stage up: are one file's "
+                "columns swapped? (--x-column and --y-column pick them by name)",
             )
 
 

@@ -23,7 +23,7 @@ from .cascade import Cascade
 from .compensation import MAX_NODES, CompensationTable, compensation_table
 from .errors import CascalError, InputError, NumericalError
 from .gp import FittedGP
-from .io.data import StageData, read_stage
+from .io.data import Source, StageData, read_stage
 from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
 from .screening import LEVEL, Screening, Spread, screen, screen_repeats
@@ -615,6 +615,7 @@ class DeviceResult:
         points: Points of the device stage (after averaging repeats).
         screening: Outlier screening of the device's file, or None when skipped.
         bounds: The device stage's hyperparameters that ended at a bound (:func:`bound_hits`).
+        source: The device file's provenance (its columns among it), or None.
     """
 
     device: str
@@ -628,6 +629,7 @@ class DeviceResult:
     points: int = 0
     screening: StageScreening | None = None
     bounds: tuple[BoundHit, ...] = ()
+    source: Source | None = None
 
 
 def summarize_device(model: CalibrationModel) -> dict[str, object]:
@@ -746,4 +748,5 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
         points=int(data.x.size),
         screening=check,
         bounds=tuple(bound_hits(model, first=len(model.fitted.models) - 1)),
+        source=data.source,
     )

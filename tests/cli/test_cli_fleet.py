@@ -130,6 +130,21 @@ def test_a_device_with_another_zero_is_named_and_fits_with_mean_offset(fleet, tm
                                 "--jobs", "1", "--restarts", "2", "--mean", mean)  # fmt: skip
         assert runs[mean].returncode == 0, runs[mean].stderr
     stuck = runs["identity"].stderr
+    assert "swapped" not in stuck  # (device, testbed) after the test bed's (testbed, reference)
     assert "far.CSV: the fit's variance is stuck at a bound" in stuck, stuck
     assert "--mean offset" in stuck
     assert "stuck" not in runs["offset"].stderr, runs["offset"].stderr
+
+
+def test_a_device_file_with_its_columns_swapped_is_named(fleet, tmp_path):
+    _, tb, folder, _, _ = fleet
+    devices = tmp_path / "devices"
+    devices.mkdir()
+    head, *rows = (folder / "device02.csv").read_text().splitlines()
+    x, y = head.split(",")
+    (devices / "swapped.csv").write_text("\n".join([f"{y},{x}", *rows]) + "\n")
+    res = run_cascal("fit-devices", tb, "--devices", devices, "-o", tmp_path / "out",
+                     "--jobs", "1", "--restarts", "2")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert f"swapped.csv: its columns ({y}, {x}) follow " in res.stderr
+    assert "are one file's columns swapped?" in res.stderr
