@@ -16,6 +16,7 @@ from pathlib import Path
 
 from ._version import __version__
 from .errors import CascalError, InputError
+from .io.atomic import is_stdout
 
 __all__ = ["main"]
 
@@ -64,6 +65,10 @@ def check_output(
     p = Path(path)
     if str(path) == "":
         raise InputError(f"{option}: expected a file name, got an empty one")
+    if is_stdout(path):
+        if folder:
+            raise InputError(f"{option} {path}: expected a folder, not standard output")
+        return
     if folder and p.exists() and not p.is_dir():
         raise InputError(f"{option} {p}: expected a folder, got an existing file")
     if not folder and p.is_dir():
@@ -233,9 +238,9 @@ def _row_numbers(text: str, spec: str, last: int | None = None) -> set[int]:
 
 def _cmd_fit(args: argparse.Namespace) -> int:
     """Fit stage files (reference end first) and write a model file."""
-    from .cli_screening import SKIPPED, report_screening
+    from .cli_screening import SKIPPED, report_findings, report_screening
     from .io.modelfile import save_model
-    from .workflow import fit_model, screen_stages
+    from .workflow import fit_findings, fit_model, screen_stages
 
     check_output(args.output, inputs=args.stages)
     data = _read_stages(args.stages, args)
@@ -243,7 +248,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     path = save_model(args.output, model)
     print("\n".join(model_lines(model)))
     _report_chain("fit", model.sources)
-    _report_bounds("fit", model)
+    files = [src.file for src in model.sources]
+    report_findings("fit", fit_findings(model), files, model.unit)
     if args.no_screening:
         print(SKIPPED)
     else:
@@ -302,10 +308,10 @@ def _cmd_correct(args: argparse.Namespace) -> int:
 
 def _cmd_fit_devices(args: argparse.Namespace) -> int:
     """Fit the test bed once, then every device file in a folder against it, in parallel."""
-    from .cli_screening import SKIPPED, bound_line, report_screening, screening_lines
+    from .cli_screening import SKIPPED, report_findings, report_screening, screening_lines
     from .io.atomic import write_text
     from .io.modelfile import save_model
-    from .workflow import fit_devices, fit_model, screen_stages
+    from .workflow import fit_devices, fit_findings, fit_model, screen_stages
 
     check_output(args.output, folder=True)
     folder = Path(args.devices)
@@ -314,13 +320,21 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".csv" and p.is_file())
     if not files:
         raise InputError(f"no .csv device files in folder {folder}")
+    stems: dict[str, Path] = {}
+    for f in files:  # each device's model is <stem>.json
+        other = stems.setdefault(f.stem.casefold(), f)
+        if other != f:
+            raise InputError(
+                f"--devices {folder}: {other.name} and {f.name} would both be device "
+                f"{f.stem}; rename one"
+            )
     skip = exclusions(args.exclude, [args.testbed, *files])
     (testbed,) = _read_stages([args.testbed], args, skip[:1])
     out = Path(args.output)
     tb = fit_model([testbed], **_fit_kwargs(args))
     tb_model = save_model(out / "testbed.json", tb)
     print(f"Test bed fitted once: {tb_model}")
-    _report_bounds("fit-devices", tb)
+    report_findings("fit-devices", fit_findings(tb), [tb.sources[0].file], tb.unit)
     level = None if args.no_screening else _level(args)
     if level is None:
         print(SKIPPED)
@@ -354,8 +368,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             )
             for line in screening_lines(r.screening, tb.unit) if r.screening else ():
                 warn("fit-devices", line)
-            for line in dict.fromkeys(bound_line(h, r.file, tb.unit) for h in r.bounds):
-                warn("fit-devices", line)
+            stage_files = [tb.sources[0].file, r.file]
+            report_findings("fit-devices", r.findings, stage_files, tb.unit)
             if r.source is not None:
                 _report_chain("fit-devices", [tb.sources[0], r.source])
 
@@ -442,6 +456,11 @@ def _one(values: list[str] | None) -> str | None:
 
 
 def _fit_kwargs(args: argparse.Namespace) -> dict[str, object]:
+    if args.mean != "identity" and args.method == "lut":
+        raise InputError(
+            f"--mean {args.mean}: the lookup tables of --method lut have no prior mean; "
+            "leave --mean out, or choose a GP method"
+        )
     return dict(
         method=args.method,
         kernel=args.kernel,
@@ -470,16 +489,6 @@ def _report_chain(command: str, sources: Sequence) -> None:
                 f"readings of {xu}, the sensor calibrated one stage up: are one file's "
                 "columns swapped? (--x-column and --y-column pick them by name)",
             )
-
-
-def _report_bounds(command: str, model) -> None:
-    """Warn of every stage hyperparameter the fit left at a bound of its range."""
-    from .cli_screening import bound_line
-    from .workflow import bound_hits
-
-    lines = (bound_line(h, model.sources[h.stage].file, model.unit) for h in bound_hits(model))
-    for line in dict.fromkeys(lines):  # one offset line per stage, whatever it stuck at
-        warn(command, line)
 
 
 def _level(args: argparse.Namespace) -> float:
@@ -552,7 +561,8 @@ def _fleet_csv(results) -> str:
 
 
 def warn(command: str, message: str) -> None:
-    sys.stdout.flush()
+    if sys.stdout is not None:  # None: the process was started with stdout closed
+        sys.stdout.flush()
     print(f"cascal {command}: warning: {message}", file=sys.stderr)
 
 
@@ -801,24 +811,11 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _is_stdout(path: object) -> bool:
-    """Whether ``path`` (an output option's value) is this process's standard output."""
-    if not isinstance(path, str | os.PathLike):
-        return False
-    try:
-        a, b = os.stat(path), os.fstat(sys.stdout.fileno())
-    except (OSError, ValueError):
-        return False
-    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cascal`` console script; returns the exit status."""
     args = _parser().parse_args(join_negative(list(sys.argv[1:] if argv is None else argv)))
     func: Callable[[argparse.Namespace], int] = args.func
-    if getattr(args, "output", None) == "-" and Path("/dev/stdout").exists():
-        args.output = "/dev/stdout"
-    to_stdout = _is_stdout(getattr(args, "output", None))
+    to_stdout = is_stdout(getattr(args, "output", None))
     try:  # an output written to stdout keeps it: the command's own lines go to stderr
         with contextlib.redirect_stdout(sys.stderr) if to_stdout else contextlib.nullcontext():
             return func(args)

@@ -7,9 +7,16 @@ import shlex
 
 from .cli import rows_text
 from .screening import LEVEL, min_points
-from .workflow import BoundHit, StageScreening
+from .workflow import BoundHit, StageOffset, StageScreening
 
-__all__ = ["SKIPPED", "bound_line", "report_screening", "screening_lines", "screening_summary"]
+__all__ = [
+    "SKIPPED",
+    "finding_line",
+    "report_findings",
+    "report_screening",
+    "screening_lines",
+    "screening_summary",
+]
 
 #: What ``fit`` and ``fit-devices`` print in place of the summary with --no-screening.
 SKIPPED = "Outlier screening: skipped (--no-screening)"
@@ -108,45 +115,49 @@ def report_screening(command: str, checks: list[StageScreening], unit: str, what
     print(screening_summary(checks, what))
 
 
-_WORDS = {"noise_variance": "learned noise", "noise_ratio": "noise ratio"}
-
-
-def bound_line(hit: BoundHit, file: str, unit: str) -> str:
-    """What a hyperparameter at a bound of its range means for the stage of ``file``;
-    where the corrections are mostly one offset, that is the cause named."""
-    n = f"{hit.points} points"
-    if abs(hit.offset) > 3.0 * hit.spread:
+def finding_line(finding: BoundHit | StageOffset, file: str, unit: str) -> str:
+    """What a :func:`~cascal.workflow.fit_findings` finding means for the stage of ``file``."""
+    if isinstance(finding, StageOffset):
         return (
-            f"{file}: the fit's {_WORDS.get(hit.parameter, hit.parameter)} is stuck at a "
-            f"bound of its range: the corrections "
-            f"average {hit.offset:+.6g} {unit}, far more than they vary ({hit.spread:.3g} "
-            f"{unit}), as when the two sensors' zeros differ; the prior mean (identity) "
-            "cannot follow that, so the fit and its u are wrong: fit with --mean offset, or "
-            "zero the readings"
+            f"{file}: the corrections average {finding.offset:+.6g} {unit}, "
+            f"{abs(finding.offset) / max(finding.spread, 1e-300):.3g} times as much as they "
+            "vary, as when the two sensors' zeros differ; the identity prior mean reaches "
+            "that offset only through the map's variance, which can cost the fit its "
+            "accuracy and u its meaning: fit with --mean offset, or zero the readings"
         )
-    if hit.parameter.endswith("length_scale"):
+    name = finding.parameter.replace("_", " ")
+    if finding.parameter.endswith("length_scale"):
         return (
-            f"{file}: the fitted length scale sits at its lower bound ({hit.value:.3g} {unit}, "
-            "half the closest spacing of the readings): the corrections vary faster than "
-            "the points show, or the two columns do not belong together; u between the "
-            "points cannot be trusted"
+            f"{file}: the fitted {name} sits at the lower end of its range: the corrections "
+            "vary faster than the points show, or the two columns do not belong together; "
+            "u between the points cannot be trusted"
         )
-    if hit.parameter in ("noise_variance", "noise_ratio") and hit.side == "upper":
+    if finding.parameter in ("noise_variance", "noise_ratio") and finding.side == "upper":
         return (
-            f"{file}: the learned noise sits at its upper bound (10 times the corrections' "
-            f"variance): the fit takes the readings for noise about the prior mean, and {n} "
-            "cannot show otherwise; u cannot be trusted: measure more points"
+            f"{file}: the learned noise sits at the upper end of its range: the fit takes the "
+            f"readings for noise about the prior mean, and {finding.points} points cannot show "
+            "otherwise; u cannot be trusted: measure more points"
         )
-    if hit.parameter in ("noise_variance", "noise_ratio"):
+    if finding.parameter in ("noise_variance", "noise_ratio"):
         return (
-            f"{file}: the learned noise sits at its lower bound: the fit passes through every "
-            f"point, and {n} cannot tell the readings' noise from the map; u is likely too "
-            "small: measure more points, or repeat readings (their spread gives a known noise)"
+            f"{file}: the learned noise sits at the lower end of its range: the fit passes "
+            f"through every point, and {finding.points} points cannot tell the readings' noise "
+            "from the map; u is likely too small: measure more points, or repeat readings "
+            "(their spread gives a known noise)"
         )
-    where = "upper" if hit.side == "upper" else "lower"
     why = (
         "the corrections are larger than the fit can follow"
-        if hit.side == "upper"
+        if finding.side == "upper"
         else "the fit puts every deviation from the prior mean down to noise"
     )
-    return f"{file}: the map's variance sits at its {where} bound: {why}; u cannot be trusted"
+    where = finding.side
+    return f"{file}: the fitted {name} sits at the {where} end of its range: {why}; u may be wrong"
+
+
+def report_findings(command: str, findings, files: list[str], unit: str) -> None:
+    """Warn of every finding of :func:`~cascal.workflow.fit_findings` (``files``: the stage
+    files, by stage index)."""
+    from .cli import warn
+
+    for f in findings:
+        warn(command, finding_line(f, files[f.stage], unit))

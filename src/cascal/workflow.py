@@ -36,13 +36,14 @@ __all__ = [
     "Correction",
     "DeviceResult",
     "MeasurementPlan",
+    "StageOffset",
     "StageScreening",
-    "bound_hits",
     "change_covariance",
     "compare_models",
     "compensation",
     "correct",
     "fit_devices",
+    "fit_findings",
     "fit_model",
     "plan_measurements",
     "screen_stages",
@@ -217,6 +218,11 @@ def screen_stages(
     return out
 
 
+#: Corrections whose mean is this many times their spread are one offset between the two
+#: sensors' zeros, not a calibration map (the paper's study reaches 86 in 4000 stages).
+OFFSET_RATIO = 1000.0
+
+
 @dataclass(frozen=True, slots=True)
 class BoundHit:
     """A fitted stage hyperparameter at a bound of its search range (see
@@ -225,50 +231,61 @@ class BoundHit:
     Attributes:
         stage: Index of the stage in the model.
         parameter: ``length_scale``, ``variance``, ``noise_variance`` or ``noise_ratio``
-            (noise_variance / variance), as named by the fit.
+            (noise_variance / variance), as named by the fit (``k1_`` ... in a sum).
         side: ``"lower"`` or ``"upper"``.
-        value: The parameter's value (unit of the readings, squared for variances).
         points: Points of the stage.
-        offset: Mean of the stage's corrections (targets minus the prior mean), unit.
-        spread: Their standard deviation about that mean, unit.
     """
 
     stage: int
     parameter: str
     side: str
-    value: float
     points: int
+
+
+@dataclass(frozen=True, slots=True)
+class StageOffset:
+    """A stage with the identity prior mean whose corrections (targets minus readings) are
+    mostly one offset: their mean beyond :data:`OFFSET_RATIO` times their spread.
+
+    Attributes:
+        stage: Index of the stage in the model.
+        offset: Mean of the corrections, unit of the readings.
+        spread: Their standard deviation about that mean, same unit.
+    """
+
+    stage: int
     offset: float
     spread: float
 
 
-def bound_hits(model: CalibrationModel, *, first: int = 0) -> list[BoundHit]:
-    """The hyperparameters of stages ``first``, ... of a freshly fitted model that ended
-    at a bound, where that makes u doubtful: a length scale at its lower bound (the map
-    varies faster than the points show), a variance at either bound, the learned noise at
-    its upper bound (the readings taken for noise) or, with no known noise, at its lower
-    bound (the fit interpolates, the noise unestimated). A length scale at its upper bound
-    is listed only where the corrections are mostly one offset (their mean beyond 3 times
-    their spread: the identity mean reaching for it), else it is a straight correction; a
-    learned white noise at its lower bound on top of a known noise is not listed. Empty for
-    a loaded model (its bounds are not stored)."""
-    out = []
+def fit_findings(model: CalibrationModel, *, first: int = 0) -> list[BoundHit | StageOffset]:
+    """What makes the u of stages ``first``, ... of a freshly fitted model doubtful.
+
+    A :class:`StageOffset` where the identity prior mean has to reach a constant offset
+    through the map's variance (``mean="offset"`` fits it); else each hyperparameter that
+    ended at a bound: a length scale at its lower bound (the map varies faster than the
+    points show), a variance at either bound, the learned noise at its upper bound (the
+    readings taken for noise) or, with no known noise, at its lower bound (the fit
+    interpolates; the noise is not estimated). A length scale at its upper bound (a
+    straight correction) and a learned noise at its lower bound on top of a known noise
+    are not listed. Bounds are not stored in model files: a loaded model shows offsets only.
+    """
+    out: list[BoundHit | StageOffset] = []
     for k in range(first, len(model.fitted.models)):
         gp = model.fitted.models[k]
-        if not isinstance(gp, FittedGP) or gp.optimization is None:
+        if not isinstance(gp, FittedGP):
             continue
         r = gp.y - gp.mean(gp.x)
-        hp = gp.hyperparameters
-        for name, side in gp.optimization.at_bounds():
-            offset = abs(float(r.mean())) > 3.0 * float(r.std())
-            if name.endswith("length_scale") and side == "upper" and not offset:
+        mean, spread = float(r.mean()), float(r.std())
+        if gp.mean.name == "identity" and abs(mean) > OFFSET_RATIO * spread:
+            out.append(StageOffset(k, mean, spread))
+            continue
+        for name, side in gp.optimization.at_bounds() if gp.optimization else ():
+            if name.endswith("length_scale") and side == "upper":
                 continue
             noise = name in ("noise_variance", "noise_ratio")
-            if noise and side == "lower" and gp.noise is not None:
-                continue
-            value = hp[name] if name in hp else hp["noise_variance"] / hp["variance"]
-            hit = BoundHit(k, name, side, float(value), gp.x.size, float(r.mean()), float(r.std()))
-            out.append(hit)
+            if not (noise and side == "lower" and gp.noise is not None):
+                out.append(BoundHit(k, name, side, gp.x.size))
     return out
 
 
@@ -614,7 +631,7 @@ class DeviceResult:
         calibrated_range: Smallest and largest device reading calibrated.
         points: Points of the device stage (after averaging repeats).
         screening: Outlier screening of the device's file, or None when skipped.
-        bounds: The device stage's hyperparameters that ended at a bound (:func:`bound_hits`).
+        findings: What makes the device stage's u doubtful (:func:`fit_findings`).
         source: The device file's provenance (its columns among it), or None.
     """
 
@@ -628,7 +645,7 @@ class DeviceResult:
     calibrated_range: tuple[float, float] = (float("nan"), float("nan"))
     points: int = 0
     screening: StageScreening | None = None
-    bounds: tuple[BoundHit, ...] = ()
+    findings: tuple[BoundHit | StageOffset, ...] = ()
     source: Source | None = None
 
 
@@ -747,6 +764,6 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
         calibrated_range=model.calibrated_range,
         points=int(data.x.size),
         screening=check,
-        bounds=tuple(bound_hits(model, first=len(model.fitted.models) - 1)),
+        findings=tuple(fit_findings(model, first=len(model.fitted.models) - 1)),
         source=data.source,
     )

@@ -37,6 +37,11 @@ FIT_CASES = {
         ["--period", "360"],
         ["--period is the period of --kernel periodic, not of se"],
     ),
+    "mean_for_lookup_tables": (
+        GOOD,
+        ["--method", "lut", "--mean", "offset"],
+        ["--mean offset", "no prior mean"],
+    ),
     "period_too_short": (
         GOOD,
         ["--kernel", "periodic", "--period", "2"],
@@ -52,6 +57,11 @@ FIT_CASES = {
         [],
         ["row 4", "column 'b'", "not above", "(row 3)", "one-to-one", "a mistyped cell"],
     ),
+    "reversed_direction": (
+        "a,b\n1,-1\n2,-2\n3,-3\n4,-4\n",
+        [],
+        ["row 3", "3 of its 3 steps go back", "direction reversed"],
+    ),
     "noisier_than_the_steps": (
         "a,b\n1,1\n2,2.5\n3,2.4\n4,4\n5,5.2\n6,5.1\n7,7\n",
         [],
@@ -63,6 +73,7 @@ FIT_CASES = {
 NO_FILE_NAMED = {
     "periodic_without_period",
     "period_without_periodic",
+    "mean_for_lookup_tables",
     "negative_period",
     "export_bad_name",
     "export_bad_tolerance",
@@ -141,6 +152,15 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
         ["fit-devices", bad_tb, "--devices", files[0].parent, "-o", dest], dest, ["row 4"],
         bad_tb.name,
     )  # fmt: skip
+    twins = tmp / "twins"
+    twins.mkdir()
+    for name in ("a.csv", "a.CSV"):
+        (twins / name).write_text(GOOD)
+    dest = tmp / "fleet_twins"
+    out["fleet_twin_devices"] = (
+        ["fit-devices", files[0], "--devices", twins, "-o", dest], dest,
+        ["a.CSV and a.csv would both be device a"], "twins",
+    )  # fmt: skip
     dest = tmp / "fleet_no_folder"
     out["fleet_no_folder"] = (
         ["fit-devices", files[0], "--devices", tmp / "nowhere", "-o", dest], dest,
@@ -208,6 +228,7 @@ ALL = [
     "report_edited_model",
     "fleet_bad_testbed",
     "fleet_no_folder",
+    "fleet_twin_devices",
     "study_corrupt_database",
     "output_is_a_folder",
     "output_under_a_file",

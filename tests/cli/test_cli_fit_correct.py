@@ -141,27 +141,27 @@ def test_a_far_outlier_keeps_the_other_rows_digits(linear_files, tmp_path):
 
 
 def test_a_zero_offset_is_named_and_fitted_with_mean_offset(linear_files, linear_case, tmp_path):
-    """The device's zero 10 m off its test bed's: the identity prior mean cannot follow, the
-    fit says so and points to --mean offset, with which the model is the unshifted one,
-    moved by 10 m."""
+    """The device's zero 100 m off its test bed's (the corrections 1900 times their
+    spread): the fit names the offset and points to --mean offset, with which the model is
+    the unshifted one, moved by 100 m."""
     (ref, dev), _ = linear_files
     shifted = tmp_path / "device_offset.csv"
     head, *rows = dev.read_text().splitlines()
-    moved = [f"{float(a) + 10.0!r},{b}" for a, b in (r.split(",") for r in rows)]
+    moved = [f"{float(a) + 100.0!r},{b}" for a, b in (r.split(",") for r in rows)]
     shifted.write_text("\n".join([head, *moved]) + "\n")
     stuck = run_cascal("fit", ref, shifted, "-o", tmp_path / "stuck.json", "--no-screening")
     assert stuck.returncode == 0, stuck.stderr
-    assert "device_offset.csv: the fit's variance is stuck at a bound" in stuck.stderr
-    assert "corrections average -10" in stuck.stderr and "--mean offset" in stuck.stderr
+    assert "device_offset.csv: the corrections average -100" in stuck.stderr
+    assert "--mean offset" in stuck.stderr and "stuck" not in stuck.stderr
     fits = {}
     for name, stage in (("plain", dev), ("offset", shifted)):
         out = tmp_path / f"{name}.json"
         res = run_cascal("fit", ref, stage, "-o", out, "--mean", "offset", "--no-screening")
-        assert res.returncode == 0 and "stuck" not in res.stderr, res.stderr
+        assert res.returncode == 0 and "--mean offset" not in res.stderr, res.stderr
         fits[name] = load_model(out)
-    assert "prior mean offset -10" in res.stdout
+    assert "prior mean offset -100" in res.stdout
     r = linear_case.readings
-    a, b = correct(fits["plain"], r), correct(fits["offset"], r + 10.0)
+    a, b = correct(fits["plain"], r), correct(fits["offset"], r + 100.0)
     inside = ~a.out_of_range
     np.testing.assert_allclose(b.corrected[inside], a.corrected[inside], rtol=0, atol=1e-9)
     np.testing.assert_allclose(b.u[inside], a.u[inside], rtol=1e-4)
@@ -177,9 +177,9 @@ def test_too_few_reference_points_are_named(tmp_path):
     dev.write_text("device,testbed\n0.1,0.1003\n0.5,0.5002\n0.9,0.8995\n")
     res = run_cascal("fit", ref, dev, "-o", tmp_path / "m.json")
     assert res.returncode == 0, res.stderr
-    assert "ref.csv: the learned noise sits at its upper bound" in res.stderr
-    assert "ref.csv: the fitted length scale sits at its lower bound (0.25 m" in res.stderr
-    assert "dev.csv: the fitted length scale sits at its lower bound (0.2 m" in res.stderr
+    assert "ref.csv: the learned noise sits at the upper end of its range" in res.stderr
+    assert "ref.csv: the fitted length scale sits at the lower end of its range" in res.stderr
+    assert "dev.csv: the fitted length scale sits at the lower end of its range" in res.stderr
 
 
 @pytest.mark.parametrize("dest", ["-", "/dev/stdout"])
@@ -193,6 +193,33 @@ def test_a_table_written_to_stdout_keeps_it_to_itself(linear_model, linear_files
     assert lines[0] == "reading,corrected,u,U,out_of_range"
     assert len(lines) == len(readings.read_text().splitlines())
     assert "Corrected " in res.stderr and "Corrected" not in res.stdout
+
+
+def test_a_table_appended_to_a_file_through_stdout_keeps_the_file(
+    linear_model, linear_files, tmp_path
+):
+    """``-o - >> log.csv``: standard output is a file opened for appending; the table is
+    added after what it held (a rename onto it would have replaced it)."""
+    import shlex
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    _, readings = linear_files
+    log = tmp_path / "log.csv"
+    log.write_text("# earlier line\n")
+    script = shlex.quote(str(Path(sys.executable).with_name("cascal")))
+    q = shlex.quote
+    cmd = f"{script} correct {q(str(linear_model))} {q(str(readings))} -o - >> {q(str(log))}"
+    res = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    lines = log.read_text().splitlines()
+    assert lines[:2] == ["# earlier line", "reading,corrected,u,U,out_of_range"]
+    assert len(lines) == len(readings.read_text().splitlines()) + 1
+    closed = subprocess.run(["bash", "-c", cmd.replace(f">> {q(str(log))}", ">&-")],
+                            capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert closed.returncode == 1 and "no standard output to write to" in closed.stderr
+    assert "Traceback" not in closed.stderr
 
 
 def test_a_reader_that_leaves_early_ends_the_command_quietly(linear_model):

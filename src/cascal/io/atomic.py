@@ -1,14 +1,20 @@
-"""Atomic file writes: a temporary file in the target folder, then a rename."""
+"""Atomic file writes: a temporary file in the target folder, then a rename; standard
+output (``-``, or a path to it) gets the finished content where it stands."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import stat
+import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["atomic_write", "save_figure", "write_text"]
+__all__ = ["STDOUT", "atomic_write", "is_stdout", "save_figure", "write_text"]
+
+#: The output name of standard output.
+STDOUT = "-"
 
 
 def _read_umask() -> int:
@@ -20,16 +26,35 @@ def _read_umask() -> int:
 _UMASK = _read_umask()
 
 
+def is_stdout(path: object) -> bool:
+    """Whether an output ``path`` is this process's standard output: ``-``, or a path to
+    the file, pipe or terminal it is (``/dev/stdout``)."""
+    if path is None:
+        return False
+    if str(path) == STDOUT:
+        return True
+    out = sys.__stdout__
+    try:
+        a, b = os.stat(path), os.fstat(out.fileno())  # type: ignore[arg-type, union-attr]
+    except (OSError, ValueError, AttributeError, TypeError):
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     """Call ``write(tmp_path)`` and rename the result onto ``path``; nothing half-written.
 
-    A symbolic link stays and its target is replaced; a device or FIFO (``/dev/stdout``, a
-    named pipe) is written in place, since renaming a file onto it would replace it.
+    A symbolic link stays and its target is replaced; a device or FIFO (a named pipe) is
+    written in place, since renaming a file onto it would replace it. Standard output
+    (:func:`is_stdout`) gets the finished content copied to it where it stands, so a file
+    it appends to keeps what it held.
 
     Args:
         path: Destination file; its folder is created if missing.
         write: Writes the whole content to the temporary path it is given.
     """
+    if is_stdout(path):
+        return _to_stdout(path, write)
     dest = Path(path)
     try:
         mode = os.stat(dest).st_mode  # through links
@@ -59,6 +84,20 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
             raise OSError(exc.errno, f"cannot write {dest}: {exc.strerror}") from None
         raise
     return dest
+
+
+def _to_stdout(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
+    out = sys.__stdout__
+    if out is None:
+        raise OSError(9, "there is no standard output to write to")
+    with tempfile.TemporaryDirectory() as folder:
+        tmp = os.path.join(folder, "output")
+        write(tmp)
+        out.flush()
+        with open(tmp, "rb") as fh:
+            shutil.copyfileobj(fh, out.buffer)
+        out.buffer.flush()
+    return Path("/dev/stdout" if str(path) == STDOUT else path)  # as messages name it
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:

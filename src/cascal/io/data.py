@@ -241,13 +241,15 @@ def read_stage(
             mean = f" (the mean of its {n} readings)" if n > 1 else ""
             return f"{yn} {float(rep.y[j])!r} at {xn} {float(rep.x[j])!r}{mean}"
 
-        hint = (
-            f"; {bad.size} of its {rep.y.size - 1} steps go back: are the points closer "
-            "together than the readings' noise? Then repeat readings at fewer, wider-spaced "
-            "positions (repeats are averaged)"
-            if bad.size > 1
-            else "; a mistyped cell, or rows out of step?"
+        steps = rep.y.size - 1
+        hint = f"; {bad.size} of its {steps} steps go back: " + (
+            "is one sensor's direction reversed, or are the columns swapped?"
+            if 2 * bad.size > steps
+            else "are the points closer together than the readings' noise? Then repeat "
+            "readings at fewer, wider-spaced positions (repeats are averaged)"
         )
+        if bad.size == 1:
+            hint = "; a mistyped cell, or rows out of step?"
         raise InputError(
             f"{value(k + 1)} is not above {value(k)} (row {int(rows[k])}); "
             "the more accurate reading must increase with the calibrated one (one-to-one, "

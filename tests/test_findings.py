@@ -1,0 +1,53 @@
+"""What makes a fitted stage's u doubtful (workflow.fit_findings), on files with a known
+cause: an offset between the sensors' zeros, too few points, clean data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cascal.io.data import read_stage
+from cascal.workflow import BoundHit, StageOffset, fit_findings, fit_model
+
+
+def _stage(path, x, y, names=("testbed", "reference")):
+    rows = zip(np.asarray(x).tolist(), np.asarray(y).tolist(), strict=True)
+    path.write_text(",".join(names) + "\n" + "".join(f"{a!r},{b!r}\n" for a, b in rows))
+    return read_stage(path)
+
+
+@pytest.fixture
+def smooth():
+    rng = np.random.default_rng(3)
+    x = np.linspace(0.0, 1.0, 40)
+    return x, x + 1e-3 * np.sin(6 * x) + 2e-5 * rng.standard_normal(40)
+
+
+def test_an_offset_between_the_zeros_is_named_and_mean_offset_removes_it(tmp_path, smooth):
+    """A reference 100 m off (corrections 1e5 times their spread): with the identity mean
+    the variance is profiled, so no bound is hit, yet the offset is named; with the offset
+    mean nothing is, and the corrections are those of the unshifted fit."""
+    x, y = smooth
+    data = _stage(tmp_path / "far.csv", x, y + 100.0)
+    (finding,) = fit_findings(fit_model([data], n_restarts=2))
+    assert isinstance(finding, StageOffset) and finding.stage == 0
+    assert finding.offset == pytest.approx(np.mean(y + 100.0 - x), rel=1e-12)
+    assert finding.spread == pytest.approx(np.std(y - x), rel=1e-9)
+    offset = fit_model([data], n_restarts=2, mean="offset")
+    assert fit_findings(offset) == []
+    plain = fit_model([_stage(tmp_path / "near.csv", x, y)], n_restarts=2, mean="offset")
+    xs = np.linspace(0.05, 0.95, 50)
+    np.testing.assert_allclose(
+        offset.fitted.correct(xs) - 100.0, plain.fitted.correct(xs), rtol=0, atol=1e-9
+    )
+
+
+def test_three_points_hit_their_bounds_and_clean_data_none(tmp_path, smooth):
+    few = _stage(tmp_path / "few.csv", [0.0, 0.5, 1.0], [0.0001, 0.4990, 1.0002])
+    hits = fit_findings(fit_model([few], n_restarts=2))
+    assert hits == [
+        BoundHit(0, "length_scale", "lower", 3),
+        BoundHit(0, "noise_ratio", "upper", 3),
+    ]
+    x, y = smooth
+    assert fit_findings(fit_model([_stage(tmp_path / "ok.csv", x, y)], n_restarts=2)) == []
