@@ -182,7 +182,10 @@ def test_rotary_changes_go_the_short_way_round():
                 np.ones(3), period=360.0)  # fmt: skip
     np.testing.assert_allclose(c.change, [0.2, 0.2, -1.0], atol=1e-12)
     np.testing.assert_allclose(c.en, np.abs(c.change) / (2 * np.sqrt(2.0)))
-    with pytest.raises(ValueError, match="five non-empty arrays"):
+    with pytest.raises(
+        InputError,
+        match=r"u_new of one non-empty shape \(n,\), got \(3,\), \(3,\), \(3,\), \(2,\)",
+    ):
         compare(reading, reading, reading, reading[:2], reading)
 
 

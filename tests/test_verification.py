@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cascal.demo import linear_demo, rotary_demo
+from cascal.errors import InputError
 from cascal.verification import expected_within, verify
 from cascal.workflow import fit_model, verify_model
 from utils import assert_allclose, demo_stages
@@ -99,15 +100,15 @@ def test_lookup_table_without_uncertainty_and_bad_arguments():
     assert not v.has_u and s["within_U"] is None and s["rms_normalised"] is None
     assert s["conforming"] == 5 and np.all(np.isnan(v.en))
     assert verify(x, x, x, np.ones(5)).conforms is None
-    with pytest.raises(ValueError, match="one shape"):
+    with pytest.raises(InputError, match="one shape"):
         verify(x, x[:4], x, x)
-    with pytest.raises(ValueError, match="u_reading"):
+    with pytest.raises(InputError, match="u_reading"):
         verify(x, x, x, x, u_reading=-1.0)
-    with pytest.raises(ValueError, match="u_reference"):
+    with pytest.raises(InputError, match="u_reference"):
         verify(x, x, x, x, u_reference=math.inf)
-    with pytest.raises(ValueError, match="mpe"):
+    with pytest.raises(InputError, match="mpe"):
         verify(x, x, x, x, mpe=0.0)
-    with pytest.raises(ValueError, match="inside"):
+    with pytest.raises(InputError, match="inside"):
         verify(x, x, x, x, inside=np.ones(3, bool))
 
 

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .validation import as_positions, check_pair
+from .errors import InputError
+from .validation import as_positions, check_pair, frozen
 
 __all__ = ["OffsetTable", "fit_table"]
 
@@ -28,6 +29,18 @@ class OffsetTable:
 
     knots: np.ndarray
     offsets: np.ndarray
+
+    def __post_init__(self) -> None:
+        knots, offsets = as_positions(self.knots, "knots"), as_positions(self.offsets, "offsets")
+        if knots.shape != offsets.shape or knots.size < 1:
+            raise InputError(
+                f"knots and offsets: expected the same length >= 1, got {knots.size} and "
+                f"{offsets.size}"
+            )
+        if np.any(np.diff(knots) <= 0):
+            raise InputError("knots: expected strictly increasing readings")
+        object.__setattr__(self, "knots", frozen(knots))
+        object.__setattr__(self, "offsets", frozen(offsets))
 
     def __call__(self, readings: object) -> np.ndarray:
         """Corrected positions ``readings + offset(readings)``, shape (m,)."""

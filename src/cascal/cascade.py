@@ -20,10 +20,11 @@ import numpy as np
 
 from .baselines import OffsetTable, fit_table
 from .errors import CascalError, InputError
-from .gp import FittedGP, fit_gp
-from .kernels import Kernel
+from .gp import FittedGP, check_restarts, fit_gp
+from .kernels import Kernel, Periodic, make_kernel
+from .means import make_mean
 from .noise import Dense, Noise, as_noise
-from .validation import as_positions, check_increasing, check_pair
+from .validation import as_positions, check_increasing, check_pair, frozen
 
 __all__ = ["METHODS", "Cascade", "FittedCascade", "Stage"]
 
@@ -45,6 +46,12 @@ class Stage:
     y: np.ndarray
     noise: float | np.ndarray | None = None
     name: str = "stage"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "x", frozen(self.x))
+        object.__setattr__(self, "y", frozen(self.y))
+        if self.noise is not None and np.ndim(self.noise) > 0:
+            object.__setattr__(self, "noise", frozen(self.noise))
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,12 +128,23 @@ class Cascade:
         period: float | None = None,
         check_range: bool = False,
     ) -> None:
-        if method not in METHODS:
-            raise InputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+        method = _method(method)
+        try:
+            stages = list(stages)
+        except TypeError:
+            raise InputError(
+                f"stages: expected a sequence of (x, y) pairs, got {stages!r}"
+            ) from None
         if len(stages) < 1:
             raise InputError("stages: expected at least one (x, y) pair")
-        if int(n_restarts) < 1:
-            raise InputError(f"n_restarts: expected at least 1 optimiser start, got {n_restarts}")
+        check_restarts(n_restarts)
+        if seed is not None and not (isinstance(seed, int | np.integer) and seed >= 0):
+            raise InputError(f"seed: expected a whole number >= 0 or None, got {seed!r}")
+        make_kernel(kernel, period=period)  # refused here, not at fit(): name, period
+        if period is not None and not isinstance(make_kernel(kernel, period=period), Periodic):
+            raise InputError(f"period: only the periodic kernel has one, got kernel {kernel!r}")
+        if isinstance(mean, str):
+            make_mean(mean, np.zeros(1), np.zeros(1))
         n = len(stages)
         self.stages = tuple(_as_stage(s, k, n) for k, s in enumerate(stages))
         self.method = method
@@ -138,8 +156,7 @@ class Cascade:
 
     def with_method(self, method: str) -> Cascade:
         """The same (already checked) stages and settings with another ``method``."""
-        if method not in METHODS:
-            raise InputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+        method = _method(method)
         other = object.__new__(type(self))  # a shallow copy without copy.copy's protocol
         other.__dict__.update(self.__dict__)
         other.method = method
@@ -194,6 +211,13 @@ class Cascade:
             tables.append(fit_table(stage.x, targets, (f"{stage.name} x", f"{stage.name} y")))
             used.append(Stage(stage.x, targets, stage.noise, stage.name))
         return FittedCascade("lut", tuple(tables), tuple(used))
+
+
+def _method(method: object) -> str:
+    key = str(method).lower()
+    if key not in METHODS:
+        raise InputError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+    return key
 
 
 def _stage_seed(seed: int | None, k: int) -> np.random.SeedSequence:

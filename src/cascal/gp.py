@@ -10,6 +10,8 @@ weights: O(M N) for the mean, O(M N^2) only when uncertainty is asked for.
 from __future__ import annotations
 
 import contextlib
+import math
+import numbers
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -22,7 +24,7 @@ from .likelihood import Objective
 from .means import Mean, make_mean
 from .noise import Noise, as_noise
 from .optimize import OptimResult, maximize
-from .validation import as_positions, check_pair
+from .validation import as_positions, check_pair, frozen
 
 __all__ = ["FittedGP", "Objective", "Posterior", "fit_gp", "log_marginal_likelihood"]
 
@@ -107,6 +109,13 @@ def log_marginal_likelihood(
             (p+1,), or (p,) when ``noise_variance`` is 0 (then it is not a parameter).
     """
     xa, ya = check_pair(x, y)
+    if not isinstance(kernel, Kernel):
+        raise InputError(
+            "kernel: expected a Kernel with its hyperparameters, e.g. "
+            f"cascal.SquaredExp(0.2, 1e-4), got {kernel!r}"
+        )
+    if not (isinstance(noise_variance, numbers.Real) and 0.0 <= noise_variance < math.inf):
+        raise InputError(f"noise_variance: expected a finite number >= 0, got {noise_variance!r}")
     m = make_mean(mean, ya, xa)
     obj = Objective(xa, ya - m(xa), kernel, as_noise(noise, len(xa)), learn_noise=True)
     theta = np.r_[kernel.theta, np.log(max(noise_variance, 1e-300))]
@@ -146,6 +155,10 @@ class FittedGP:
     jitter: float
     log_marginal_likelihood: float
     optimization: OptimResult | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("x", "y", "L", "alpha"):
+            object.__setattr__(self, name, frozen(getattr(self, name)))
 
     @property
     def hyperparameters(self) -> dict[str, float]:
@@ -331,8 +344,7 @@ def _fit_gp(
 ) -> FittedGP:
     xa, ya = check_pair(x, y, names)
     n = xa.size
-    if int(n_restarts) < 1:
-        raise InputError(f"n_restarts: expected at least 1 optimiser start, got {n_restarts}")
+    check_restarts(n_restarts)
     if period is not None and not (isinstance(kernel, str) and kernel.lower() == "periodic"):
         raise InputError(f"period: only the periodic kernel has one, got kernel {kernel!r}")
     kern = make_kernel(kernel, period=period)
@@ -410,6 +422,15 @@ def _below_noise_floor(obj: Objective, b: np.ndarray, found: OptimResult) -> Opt
     )
 
 
+def check_restarts(n_restarts: object) -> None:
+    """Refuse ``n_restarts`` unless a whole number >= 1."""
+    whole = isinstance(n_restarts, int | np.integer) and not isinstance(n_restarts, bool)
+    if not whole or n_restarts < 1:  # type: ignore[operator]
+        raise InputError(
+            f"n_restarts: expected a whole number of optimiser starts >= 1, got {n_restarts!r}"
+        )
+
+
 def _probes(dim: int) -> list[np.ndarray]:
     """Offsets of :data:`PROBE` in log length scale (the first parameter of a table-started
     fit), both ways."""
@@ -419,12 +440,24 @@ def _probes(dim: int) -> list[np.ndarray]:
 
 
 def _from_dict(kern: Kernel, hp: dict[str, float], learn_noise: bool) -> tuple[Kernel, float]:
-    missing = [k for k in kern.names if k not in hp]
-    if learn_noise and "noise_variance" not in hp:
-        missing.append("noise_variance")
-    if missing:
-        raise InputError(f"hyperparameters: missing {missing}; expected {list(kern.names)}")
-    vals = np.array([float(hp[k]) for k in kern.names])
+    known = [*kern.names, "noise_variance"]  # (the period is the kernel's, not fitted)
+    expected = known if learn_noise else list(kern.names)
+    missing = [k for k in expected if k not in hp]
+    periodic = isinstance(kern, Periodic)  # .hyperparameters lists its period: accepted back
+    unknown = [k for k in hp if k not in known and not (k == "period" and periodic)]
+    if missing or unknown:
+        what = ", ".join(f"{w} {v}" for w, v in (("missing", missing), ("unknown", unknown)) if v)
+        raise InputError(f"hyperparameters: {what}; expected {expected}")
+    if periodic and "period" in hp and hp["period"] != kern.period:  # type: ignore[attr-defined]
+        raise InputError(
+            f"hyperparameters: period {hp['period']!r} differs from the kernel's "
+            f"{kern.period!r}; give it as period="  # type: ignore[attr-defined]
+        )
+    try:
+        vals = np.array([float(hp[k]) for k in kern.names])
+        float(hp.get("noise_variance", 0.0))
+    except (TypeError, ValueError):
+        raise InputError(f"hyperparameters: expected numbers, got {hp}") from None
     if np.any(~np.isfinite(vals)) or np.any(vals <= 0):
         raise InputError(f"hyperparameters: expected positive finite values, got {hp}")
     if not learn_noise and hp.get("noise_variance", 0.0) != 0.0:

@@ -320,7 +320,11 @@ class Objective:
         for name, lohi in (user or {}).items():
             if name not in rows:
                 raise InputError(f"bounds: unknown hyperparameter {name!r}; known: {list(rows)}")
-            rows[name] = lohi
+            try:
+                lo, hi = (float(v) for v in lohi)
+            except (TypeError, ValueError):
+                raise InputError(f"bounds: {name}: expected (lower, upper), got {lohi!r}") from None
+            rows[name] = (lo, hi)
         if self.profile:
             (l_lo, l_hi) = rows["length_scale"]
             out = [(l_lo, l_hi), (1e-10, 10.0)]

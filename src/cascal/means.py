@@ -3,6 +3,8 @@ or a constant."""
 
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,7 +44,9 @@ def make_mean(
     sensors whose zeros differ), ``"zero"``, ``"constant"`` (mean of ``y``) or a number."""
     if isinstance(spec, Mean):
         return spec
-    if isinstance(spec, int | float) and not isinstance(spec, bool):
+    if isinstance(spec, numbers.Real) and not isinstance(spec, bool):
+        if not math.isfinite(spec):
+            raise InputError(f"mean: expected a finite number, got {spec!r}")
         return Mean(0.0, float(spec))
     key = str(spec).lower()
     if key == "identity":

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError
+from .validation import frozen
 
 __all__ = ["Dense", "Diagonal", "Noise", "NoiseSum", "as_noise"]
 
@@ -61,7 +62,7 @@ class Diagonal(Noise):
             raise InputError(f"noise variance: expected a number or shape (n,), got {v.shape}")
         if not np.all(np.isfinite(v)) or np.any(v < 0):
             raise InputError("noise variance: expected finite values >= 0")
-        object.__setattr__(self, "variance", float(v) if v.ndim == 0 else v)
+        object.__setattr__(self, "variance", float(v) if v.ndim == 0 else frozen(v))
 
     def diagonal(self, n: int) -> np.ndarray:
         v = np.asarray(self.variance, dtype=float)
@@ -214,7 +215,12 @@ def as_noise(spec: float | np.ndarray | Noise | None, n: int) -> Noise | None:
         if isinstance(spec, Noise):
             spec.diagonal(n)  # validates the size
         return spec
-    a = np.asarray(spec, dtype=float)
+    try:
+        a = np.asarray(spec, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"noise: expected a number, shape ({n},) or ({n}, {n}), or a Noise, got {spec!r:.60}"
+        ) from None
     if a.ndim == 0 or a.ndim == 1:
         noise = Diagonal(a)
         noise.diagonal(n)

@@ -15,6 +15,7 @@ __all__ = [
     "as_positions",
     "check_increasing",
     "check_pair",
+    "frozen",
 ]
 
 #: Fewest points a stage fit accepts.
@@ -23,6 +24,8 @@ MIN_POINTS = 3
 
 def as_positions(a: object, name: str) -> np.ndarray:
     """``a`` as a finite float64 vector, shape (n,); raises :class:`InputError` naming ``name``."""
+    if np.iscomplexobj(a):
+        raise InputError(f"{name}: expected real numbers, got complex ones")
     try:
         arr = np.asarray(a, dtype=float)
     except (TypeError, ValueError) as exc:
@@ -39,6 +42,14 @@ def as_positions(a: object, name: str) -> np.ndarray:
             + (f" (and {bad.size - 1} more)" if bad.size > 1 else "")
         )
     return arr
+
+
+def frozen(a: np.ndarray) -> np.ndarray:
+    """A read-only copy of ``a``: what a fitted object keeps, so neither the caller's later
+    edits of the array given nor edits of the array returned change it."""
+    out = np.array(a, dtype=float)
+    out.setflags(write=False)
+    return out
 
 
 def check_pair(
@@ -95,8 +106,8 @@ def check_increasing(x: np.ndarray, y: np.ndarray, names: tuple[str, str] = ("x"
         raise InputError(
             f"{names[1]} is not increasing in {names[0]}: {names[0]}={xk!r} -> "
             f"{names[1]}={yk!r} (index {idx[k]}) but {names[0]}={xn!r} -> "
-            f"{names[1]}={yn!r} (index {idx[k + 1]}); the two sensors must be related "
-            "one-to-one (the paper's bijectivity assumption)"
+            f"{names[1]}={yn!r} (index {idx[k + 1]}); {names[1]} must increase with "
+            f"{names[0]} (one-to-one, the paper's bijectivity assumption)"
         )
 
 

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import InputError
+
 __all__ = [
     "BAND_LEVEL",
     "COVERAGE_FACTOR",
@@ -157,17 +159,21 @@ def verify(
     arrays = [np.asarray(a, dtype=float) for a in (reading, reference, corrected, u_calibration)]
     m = arrays[0].shape
     if any(a.ndim != 1 or a.shape != m for a in arrays):
-        raise ValueError("verify: expected four arrays of one shape (m,)")
+        shapes = ", ".join(str(a.shape) for a in arrays)
+        raise InputError(
+            "verify: expected reading, reference, corrected and u_calibration of one shape "
+            f"(m,), got {shapes}"
+        )
     inside = np.ones(m, bool) if inside is None else np.asarray(inside, bool)
     if inside.shape != m:
-        raise ValueError(f"verify: inside has shape {inside.shape}, expected {m}")
+        raise InputError(f"verify: inside has shape {inside.shape}, expected {m}")
     for name, v in (("u_reading", u_reading), ("u_reference", u_reference)):
         if not (0.0 <= v < math.inf):
-            raise ValueError(f"verify: {name} must be a finite number >= 0, got {v!r}")
+            raise InputError(f"verify: {name} must be a finite number >= 0, got {v!r}")
     if mpe is not None and not (0.0 < mpe < math.inf):
-        raise ValueError(f"verify: mpe must be a finite number > 0, got {mpe!r}")
+        raise InputError(f"verify: mpe must be a finite number > 0, got {mpe!r}")
     if not (0.0 < k < math.inf):
-        raise ValueError(f"verify: k must be a finite number > 0, got {k!r}")
+        raise InputError(f"verify: k must be a finite number > 0, got {k!r}")
     r, ref, c, u = arrays
     return Verification(
         r,
@@ -306,13 +312,17 @@ def compare(
     arrays = [np.asarray(a, dtype=float) for a in (reading, old, u_old, new, u_new)]
     n = arrays[0].shape
     if any(a.ndim != 1 or a.shape != n for a in arrays) or not n[0]:
-        raise ValueError("compare: expected five non-empty arrays of one shape (n,)")
+        shapes = ", ".join(str(a.shape) for a in arrays)
+        raise InputError(
+            "compare: expected reading, old, u_old, new and u_new of one non-empty shape "
+            f"(n,), got {shapes}"
+        )
     if not (0.0 < k < math.inf):
-        raise ValueError(f"compare: k must be a finite number > 0, got {k!r}")
+        raise InputError(f"compare: k must be a finite number > 0, got {k!r}")
     r, a, ua, b, ub = arrays
     cov = np.diag(ua**2 + ub**2) if change_cov is None else np.asarray(change_cov, float)
     if cov.shape != n * 2:
-        raise ValueError(f"compare: change_cov has shape {cov.shape}, expected {n * 2}")
+        raise InputError(f"compare: change_cov has shape {cov.shape}, expected {n * 2}")
     u = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     band = band_factor(cov) if np.all(np.isfinite(cov)) else math.nan
     p = None if period is None else float(period)

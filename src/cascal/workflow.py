@@ -564,6 +564,8 @@ def plan_measurements(
             unit; default: as precise as the average existing point.
         progress: Called as ``progress(chosen, k)`` after every choice.
     """
+    if not isinstance(k, int | np.integer) or isinstance(k, bool) or k < 1:
+        raise InputError(f"k: expected a whole number of measurements >= 1, got {k!r}")
     testbed = model.fitted.models[0]
     if not isinstance(testbed, FittedGP):
         raise InputError(

@@ -1,0 +1,129 @@
+"""The library's boundary: fitted objects keep their own read-only arrays, and odd but
+plausible arguments are refused with InputError instead of being ignored or failing deep
+inside."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from cascal import Cascade, InputError, fit_gp, log_marginal_likelihood
+from cascal.baselines import OffsetTable
+from cascal.kernels import SquaredExp
+from cascal.noise import Diagonal
+
+HP = {"length_scale": 0.3, "variance": 1e-4, "noise_variance": 1e-8}
+
+
+@pytest.fixture
+def data():
+    x = np.linspace(0.0, 1.0, 12)
+    return x, x + 1e-3 * np.sin(5 * x)
+
+
+def test_a_fit_keeps_its_own_read_only_arrays(data):
+    x, y = data
+    fit = fit_gp(x, y, hyperparameters=HP)
+    before = fit.predict(np.array([0.5]))
+    x += 0.1  # the caller reuses its arrays
+    y[:] = 0.0
+    np.testing.assert_array_equal(fit.predict(np.array([0.5])), before)
+    for name in ("x", "y", "L", "alpha"):
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(fit, name)[0] = 1.0
+    v = np.full(12, 1e-8)
+    noise = Diagonal(v)
+    v[:] = -1.0
+    assert np.all(noise.variance == 1e-8)
+
+
+def test_a_fitted_cascade_keeps_its_range_when_the_inputs_change():
+    t = np.linspace(0.0, 1.0, 20)
+    testbed, device = t + 1e-3 * np.sin(4 * t), np.linspace(0.1, 0.9, 15)
+    upper = device + 1e-3 * np.cos(3 * device)
+    fitted = Cascade([(testbed, t), (device, upper)], "Bayes", n_restarts=1).fit()
+    lo, hi = fitted.calibrated_range
+    device -= 0.05
+    assert fitted.calibrated_range == (lo, hi) == (0.1, 0.9)
+    assert fitted.method == "bayes"
+
+
+def test_log_marginal_likelihood_refuses_what_it_cannot_mean(data):
+    x, y = data
+    k = SquaredExp(0.3, 1e-4)
+    for bad in (-1e-6, float("nan")):
+        with pytest.raises(InputError, match="noise_variance: expected a finite number >= 0"):
+            log_marginal_likelihood(x, y, kernel=k, noise_variance=bad)
+    with pytest.raises(InputError, match="expected a Kernel with its hyperparameters"):
+        log_marginal_likelihood(x, y, kernel="se")
+
+
+def test_hyperparameters_are_checked_by_name(data):
+    x, y = data
+    with pytest.raises(InputError, match=r"unknown \['noise_var'\]"):
+        fit_gp(x, y, hyperparameters={"length_scale": 0.3, "variance": 1e-4, "noise_var": 1e-8})
+    with pytest.raises(InputError, match=r"missing \['noise_variance'\]; expected \[.*'noise_v"):
+        fit_gp(x, y, hyperparameters={"length_scale": 0.3, "variance": 1e-4})
+    with pytest.raises(InputError, match="expected numbers"):
+        fit_gp(x, y, hyperparameters={**HP, "variance": None})
+    deg = np.linspace(0.0, 350.0, 12)
+    fit = fit_gp(deg, deg + 0.01 * np.sin(np.deg2rad(deg)), kernel="periodic", period=360.0)
+    again = fit_gp(deg, fit.y, kernel="periodic", period=360.0, hyperparameters=fit.hyperparameters)
+    np.testing.assert_allclose(again.alpha, fit.alpha, rtol=1e-9, atol=0)
+    with pytest.raises(InputError, match=r"period 2\.0 differs from the kernel's 360\.0"):
+        fit_gp(deg, fit.y, kernel="periodic", period=360.0,
+               hyperparameters={**fit.hyperparameters, "period": 2.0})  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "words"),
+    [
+        ({"n_restarts": 2.7}, "n_restarts: expected a whole number"),
+        ({"bounds": {"length_scale": 0.5}}, "bounds: length_scale: expected (lower, upper)"),
+        ({"noise": "abc"}, "noise: expected a number"),
+        ({"mean": float("nan")}, "mean: expected a finite number"),
+    ],
+)
+def test_fit_gp_refuses_odd_arguments(data, kwargs, words):
+    x, y = data
+    with pytest.raises(InputError, match=re.escape(words)):
+        fit_gp(x, y, **kwargs)
+
+
+def test_numpy_numbers_and_complex_values(data):
+    x, y = data
+    a = fit_gp(x, y, mean=np.float32(0.25), hyperparameters=HP)
+    b = fit_gp(x, y, mean=0.25, hyperparameters=HP)
+    assert a.mean == b.mean
+    with pytest.raises(InputError, match="expected real numbers, got complex"):
+        fit_gp(x + 0j, y)
+
+
+@pytest.mark.parametrize(
+    ("args", "kwargs", "words"),
+    [
+        ((None,), {}, "stages: expected a sequence of (x, y) pairs"),
+        (([],), {}, "at least one"),
+        ((), {"seed": np.random.default_rng(0)}, "seed: expected a whole number"),
+        ((), {"kernel": "bogus"}, "unknown kernel 'bogus'"),
+        ((), {"mean": "bogus"}, "unknown mean 'bogus'"),
+        ((), {"period": 360.0}, "period: only the periodic kernel"),
+        ((), {"method": "gp"}, "method: expected one of"),
+    ],
+)
+def test_a_cascade_refuses_bad_settings_before_fitting(args, kwargs, words):
+    t = np.linspace(0.0, 1.0, 10)
+    stages = args[0] if args else [(t, t + 1e-3 * t**2)]
+    with pytest.raises(InputError, match=re.escape(words)):
+        Cascade(stages, **kwargs)
+
+
+def test_offset_tables_built_by_hand_are_checked():
+    with pytest.raises(InputError, match="strictly increasing"):
+        OffsetTable(np.array([1.0, 0.0]), np.array([0.1, 0.2]))
+    with pytest.raises(InputError, match="the same length"):
+        OffsetTable(np.array([0.0, 1.0]), np.array([0.1]))
+    table = OffsetTable([0.0, 1.0], [0.1, 0.2])
+    np.testing.assert_allclose(table(np.array([0.5])), [0.65])
