@@ -162,11 +162,13 @@ def plot_cost_distribution(
         hist, _ = np.histogram(j, bins=edges)
         pdf = hist / max(hist.max(), 1)
         centres = np.sqrt(edges[:-1] * edges[1:])
-        ax_pdf.plot(centres, pdf, color=f"C{k}", label=f"{m} (median {np.median(j):.3g} {unit})")
+        median = float(np.median(j))
+        text = f"{median:.0f}" if abs(median) >= 100 else f"{median:.3g}"  # no 1.53e+03
+        ax_pdf.plot(centres, pdf, color=f"C{k}", label=f"{m} (median {text} {unit})")
         ax_cdf.step(j, np.arange(1, j.size + 1) / j.size, where="post", color=f"C{k}", label=m)
     ax_pdf.set_xscale("log")
     ax_pdf.set_ylabel("normalised empirical PDF")
-    ax_pdf.legend(fontsize=8)
+    ax_pdf.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     ax_cdf.set_ylabel("empirical CDF")
     ax_cdf.set_xlabel(f"J [{unit}]")
     ax_cdf.set_ylim(0, 1)
@@ -301,11 +303,18 @@ def plot_verification(
         for sign in (-1.0, 1.0):
             ax.axhline(sign * v.mpe * scale, color="C1", ls="--", lw=1,
                        label="±MPE" if sign > 0 else None)  # fmt: skip
+        accept = (v.mpe - v.k * v.u_reference) * scale  # ISO 14253-1: |e| + U_ref <= MPE
+        if 0.0 < accept < v.mpe * scale:
+            for sign in (-1.0, 1.0):
+                ax.axhline(sign * accept, color="C1", ls=":", lw=1,
+                           label="acceptance limit" if sign > 0 else None)  # fmt: skip
         failing = ~v.conforms[m][order]
         if np.any(failing):
             ax.plot(r[failing], e[failing], "o", mfc="none", mec="C1", ms=7,
                     label="not shown to conform")  # fmt: skip
-        title += f"; {np.count_nonzero(failing)} not shown to conform to the MPE"
+            title += f"; {np.count_nonzero(failing)} not shown to conform to the MPE"
+        else:
+            title += "; all conform to the MPE"
     ax.set_xlabel(f"device reading [{xunit}]")
     ax.set_ylabel(f"corrected - reference [{unit}]")
     ax.set_title(title, fontsize=9)
@@ -352,8 +361,8 @@ def plot_change(
             ax.plot(r, np.where(beyond, d, np.nan), "-", color="C3", lw=2, label="beyond it")
         title += f"; beyond the band over {100 * s['share_beyond_band']:.1f} % of the range"
     ax.set_xlabel(f"device reading [{xunit}]")
-    ax.set_ylabel(f"{names[1]} - {names[0]} [{unit}]")
-    ax.set_title(title, fontsize=9)
+    ax.set_ylabel(f"change of correction [{unit}]")
+    ax.set_title(f"{names[1]} - {names[0]}\n{title}", fontsize=9)
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=3, frameon=False)
     return fig
 

@@ -97,9 +97,9 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
             label="suspect (outlier screening)",
         )  # fmt: skip
     _shade(rx, view.gaps, period, None)
-    rx.set_ylabel(f"about the fit [{sr}]")
+    rx.set_ylabel(f"residual, target - fit [{sr}]")
     rx.set_xlabel(f"reading [{unit}]")
-    rx.legend(fontsize=7, loc="best")
+    rx.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     _seams(ax, rx, period=period, grid=view.grid)
     return fig
 
@@ -121,7 +121,7 @@ def correction_figure(curve: CurveView, *, unit: str, period: float | None = Non
             curve.grid, -U * fu, U * fu, color="C0", alpha=0.3, lw=0, label="± U (k = 2)"
         )
         axes[1].axhline(0.0, color="0.3", lw=0.8)
-        axes[1].set_ylabel(f"about the correction [{uu}]")
+        axes[1].set_ylabel(f"expanded uncertainty [{uu}]")
     for a in axes:
         _shade(a, curve.gaps, period, "reference could not measure" if a is ax else None)
         if period is None:
@@ -366,7 +366,8 @@ def comparison_figure(model: CalibrationModel, c: Comparison, names: tuple[str, 
 _CSS = (
     "body{font-family:sans-serif;max-width:60em;margin:2em auto;color:#222}"
     "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;"
-    "font-size:90%;text-align:left}img{max-width:100%;display:block;margin:0.5em 0}"
+    "font-size:90%;text-align:left;overflow-wrap:anywhere}"
+    "img{max-width:100%;display:block;margin:0.5em 0}"
     ".warn{color:#a33}"
 )
 

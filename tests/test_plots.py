@@ -1,0 +1,46 @@
+"""Figures carry what their captions say: checked on the artists, not on pixels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cascal.plots import plot_change, plot_cost_distribution, plot_verification
+from cascal.verification import compare, verify
+
+
+def _lines(ax, label):
+    return [ln for ln in ax.get_lines() if ln.get_label() == label]
+
+
+def test_verification_draws_the_acceptance_limits_inside_the_mpe():
+    """ISO 14253-1: a point conforms when |error| + k u_reference <= MPE, so the limits
+    that decide are drawn at +-(MPE - k u_reference), inside the +-MPE lines."""
+    r = np.linspace(0.0, 1.0, 80)
+    err = 1e-6 * np.sin(9 * r)
+    v = verify(r, r, r + err, np.full(80, 1e-6), u_reference=1e-6, mpe=5e-6)
+    ax = plot_verification(v, scale=1e6, unit="µm").axes[0]
+    (limit,) = _lines(ax, "acceptance limit")
+    assert limit.get_ydata()[0] == pytest.approx(3.0)  # (5 - 2 * 1) µm
+    assert _lines(ax, "±MPE")[0].get_ydata()[0] == pytest.approx(5.0)
+    assert ax.get_title().endswith("all conform to the MPE")
+    bad = verify(r, r, r + 10 * err, np.full(80, 1e-6), u_reference=1e-6, mpe=5e-6)
+    title = plot_verification(bad, scale=1e6, unit="µm").axes[0].get_title()
+    n = int(np.count_nonzero(~bad.conforms[bad.inside]))
+    assert n > 0 and f"; {n} not shown to conform to the MPE" in title
+
+
+def test_change_names_its_quantity_and_the_files_in_the_title():
+    r = np.linspace(0.0, 1.0, 50)
+    u = np.full(50, 1e-6)
+    c = compare(r, r, u, r + 1e-7, u)
+    ax = plot_change(c, scale=1e6, unit="µm", names=("old.json", "new.json")).axes[0]
+    assert ax.get_ylabel() == "change of correction [µm]"
+    assert ax.get_title().startswith("new.json - old.json\n")
+
+
+def test_cost_medians_are_written_without_exponents():
+    costs = {"bayes": np.full(5, 80e-6), "lut": np.full(5, 1.53e-3)}
+    ax = plot_cost_distribution(costs).axes[0]
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels == ["bayes (median 80 µm)", "lut (median 1530 µm)"]
