@@ -337,3 +337,32 @@ def test_schema_2_is_schema_1_with_the_excluded_rows():
             "description", None
         )
     assert one == two
+
+
+@pytest.mark.parametrize("method", ["bayes", "lut"])
+def test_a_cascade_fitted_in_python_is_saved_and_predicts_alike(method, tmp_path):
+    """CalibrationModel.from_cascade: no files, each stage named with the SHA-256 of its
+    readings; the saved model predicts bit for bit what the fitted cascade does."""
+    import hashlib
+
+    from cascal import CalibrationModel, Cascade
+    from cascal.simulation import simulate_trial
+
+    trial = simulate_trial(np.random.default_rng(4))
+    cascade = Cascade([trial.d2, trial.d1], method, n_restarts=2)
+    fitted = cascade.fit()
+    model = CalibrationModel.from_cascade(cascade, fitted, unit="mm")
+    loaded = load_model(save_model(tmp_path / "py.json", model))
+    r = np.linspace(*fitted.calibrated_range, 9)
+    std = method != "lut"
+    np.testing.assert_array_equal(
+        np.asarray(loaded.fitted.correct(r, return_std=std)),
+        np.asarray(fitted.correct(r, return_std=std)),
+    )
+    x, y = trial.d2
+    src = loaded.sources[0]
+    assert src.file == "<testbed>" and src.rows == 64 and loaded.unit == "mm"
+    assert src.sha256 == hashlib.sha256(x.tobytes() + y.tobytes()).hexdigest()
+    other = Cascade([trial.d2, (trial.d1[0] + 1e-3, trial.d1[1])], method, n_restarts=2)
+    with pytest.raises(InputError, match="not a fit of this cascade"):
+        CalibrationModel.from_cascade(other, fitted)

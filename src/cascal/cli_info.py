@@ -13,10 +13,13 @@ __all__ = ["add_info_parser", "input_status"]
 def input_status(
     file: str | Path, sha256: str, base: Path | None = None
 ) -> tuple[str, Path | None]:
-    """``"unchanged"``, ``"changed since the fit"`` or ``"not found"``, and the path
+    """``"unchanged"``, ``"changed since the fit"``, ``"not found"`` (or, for a model made
+    from arrays, that there is no file), and the path
     checked: the file a model names against the SHA-256 recorded for it. The path is as
     given to the fit; a relative one is looked for from here, from ``base`` (the model
     file's folder) and by its name alone in ``base``, and any of them that matches counts."""
+    if str(file).startswith("<") and str(file).endswith(">"):  # CalibrationModel.from_cascade
+        return "fitted from arrays in Python, no file", None
     candidates = [Path(file)]
     if base is not None and not Path(file).is_absolute():
         candidates += [base / file, base / Path(file).name]

@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 
 from ..baselines import OffsetTable
-from ..cascade import FittedCascade, Stage
-from ..errors import CascalError, ModelFileError
+from ..cascade import Cascade, FittedCascade, Stage
+from ..errors import CascalError, InputError, ModelFileError
 from ..gp import FittedGP
 from ..kernels import Constant, Kernel, Matern32, Matern52, Periodic, Product, SquaredExp, Sum
 from ..means import Mean
@@ -82,6 +82,44 @@ class CalibrationModel:
     n_restarts: int = 5
     created: str = ""
     cascal_version: str = ""
+
+    @classmethod
+    def from_cascade(
+        cls, cascade: Cascade, fitted: FittedCascade, *, unit: str = "m"
+    ) -> CalibrationModel:
+        """A cascade fitted in Python (``fitted = cascade.fit()``) as a model to save with
+        :func:`save_model` and use from the command line (``cascal correct``, ``export``).
+
+        There are no input files: each stage's provenance names it as ``<name>`` with the
+        SHA-256 of its readings (``x`` then ``y``, float64 bytes); ``unit`` labels them.
+        """
+        if len(fitted.models) != len(cascade.stages) or any(
+            not np.array_equal(f.x, c.x) for f, c in zip(fitted.stages, cascade.stages, strict=True)
+        ):
+            raise InputError("fitted: not a fit of this cascade's stages")
+        if not (isinstance(unit, str) and 1 <= len(unit) <= 20 and unit.isprintable()):
+            raise InputError(f"unit: expected 1 to 20 printable characters, got {unit!r}")
+        sources = tuple(
+            Source(
+                f"<{st.name}>",
+                hashlib.sha256(st.x.tobytes() + st.y.tobytes()).hexdigest(),
+                int(st.x.size),
+                ("x", "y"),
+            )
+            for st in cascade.stages
+        )
+        kernel = cascade.kernel if isinstance(cascade.kernel, str) else repr(cascade.kernel)
+        return cls(
+            fitted,
+            cascade.stages,
+            tuple(np.ones(st.x.size, np.int64) for st in cascade.stages),
+            sources,
+            unit,
+            None if fitted.method == "lut" else kernel,
+            cascade.period,
+            cascade.seed,
+            int(cascade.n_restarts),
+        )
 
     @property
     def method(self) -> str:
