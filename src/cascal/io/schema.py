@@ -55,11 +55,15 @@ class SchemaError(ValueError):
         super().__init__(f"{path}: {message}")
 
 
-@cache
 def load_schema(name: str, version: int) -> dict:
-    """The shipped schema ``io/schemas/<version>/<name>.json``, parsed."""
-    text = resources.files("cascal.io").joinpath(f"schemas/{version}/{name}.json").read_text()
-    return json.loads(text)
+    """The shipped schema ``io/schemas/<version>/<name>.json``, parsed: a new dict each
+    call, so a caller's edits reach no other."""
+    return json.loads(_schema_text(name, version))
+
+
+@cache
+def _schema_text(name: str, version: int) -> str:
+    return resources.files("cascal.io").joinpath(f"schemas/{version}/{name}.json").read_text()
 
 
 def validate(instance: Any, schema: dict, *, root: dict | None = None, path: str = "$") -> None:
