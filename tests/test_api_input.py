@@ -127,3 +127,20 @@ def test_offset_tables_built_by_hand_are_checked():
         OffsetTable(np.array([0.0, 1.0]), np.array([0.1]))
     table = OffsetTable([0.0, 1.0], [0.1, 0.2])
     np.testing.assert_allclose(table(np.array([0.5])), [0.65])
+
+
+def test_unwrap_moves_a_rotary_reading_past_the_period_back_beyond_it():
+    """Reference readings 2 degrees ahead of the table's, the last ones past 360 and so
+    read near 0: unwrapped, they fit exactly what the readings taken beyond 360 give."""
+    from cascal.validation import unwrap
+
+    x = np.linspace(0.0, 359.9, 60)
+    y = x + 2.0 + 0.01 * np.sin(np.deg2rad(3 * x))
+    wrapped = np.where(y >= 360.0, y - 360.0, y)
+    assert np.count_nonzero(wrapped != y) >= 1
+    np.testing.assert_allclose(unwrap(x, wrapped, 360.0), y, rtol=0, atol=1e-12)
+    hp = {"length_scale": 1.0, "variance": 4.0, "noise_variance": 1e-8}
+    a = fit_gp(x, unwrap(x, wrapped, 360.0), kernel="periodic", period=360.0, hyperparameters=hp)
+    b = fit_gp(x, y, kernel="periodic", period=360.0, hyperparameters=hp)
+    xs = np.array([10.0, 180.0, 359.99])
+    np.testing.assert_allclose(a.predict(xs), b.predict(xs), rtol=0, atol=1e-9)

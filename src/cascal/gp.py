@@ -304,7 +304,11 @@ def fit_gp(
         y: Readings of the more accurate sensor, shape (n,), same unit.
         kernel: ``"se"``, ``"matern32"``, ``"matern52"``, ``"periodic"`` or a Kernel.
         mean: ``"identity"`` (default), ``"offset"`` (identity plus the targets' mean
-            offset from it), ``"zero"``, ``"constant"`` or a number.
+            offset from it), ``"zero"``, ``"constant"`` or a number. Rotary readings that
+            wrapped past the period (0.2 beside 359.9) are taken as given: unwrap them
+            first (:func:`cascal.validation.unwrap`), as the command line does; the
+            periodic kernel also serves linear axes (a lead screw's pitch error), where
+            nothing wraps.
         noise: None (learn a scalar variance), a number or (n,) vector (known variances),
             an (n, n) covariance (known, plus a learned scalar), or a Noise.
         learn_noise: Learn a white-noise variance on top of ``noise``; default: learn it

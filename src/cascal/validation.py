@@ -16,6 +16,7 @@ __all__ = [
     "check_increasing",
     "check_pair",
     "frozen",
+    "unwrap",
 ]
 
 #: Fewest points a stage fit accepts.
@@ -50,6 +51,13 @@ def frozen(a: np.ndarray) -> np.ndarray:
     out = np.array(a, dtype=float)
     out.setflags(write=False)
     return out
+
+
+def unwrap(x: np.ndarray, y: np.ndarray, period: float) -> np.ndarray:
+    """Rotary readings ``y`` (n,) moved by whole periods to within half a period of ``x``
+    (n,): a reference reading that wrapped past 360 to 0.2 next to a reading of 359.9
+    becomes 360.2, so the correction is 0.3, not -359.7."""
+    return x + (np.mod(y - x + 0.5 * period, period) - 0.5 * period)
 
 
 def check_pair(

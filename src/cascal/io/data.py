@@ -23,7 +23,7 @@ import numpy as np
 
 from ..cascade import Stage
 from ..errors import InputError
-from ..validation import MIN_POINTS, aggregate_repeats
+from ..validation import MIN_POINTS, aggregate_repeats, unwrap
 
 __all__ = [
     "Source",
@@ -220,7 +220,7 @@ def read_stage(
                 file=name,
                 row=int(table.rows[np.argmax(x)]),
             )
-        y = x + (np.mod(y - x + 0.5 * period, period) - 0.5 * period)
+        y = unwrap(x, y, period)
     rep = aggregate_repeats(x, y, table.source.columns)
     rows = table.rows[rep.first]
     if rep.x.size < MIN_POINTS:
