@@ -231,8 +231,10 @@ def plot_plan(
         ax.axvline(p, color="C3", lw=0.8, alpha=0.7, label="proposed" if k == 1 else None)
     top = float(np.max(now)) * scale
     for p, orders in _labels(plan.positions[:_NUMBERED], 0.015 * (hi - lo or 1.0)):
-        ax.annotate(orders, (p, top), fontsize=7, color="C3", ha="center", va="bottom")
-    ax.set_ylim(0, 1.15 * top if top > 0 else 1.0)
+        ax.annotate(orders.replace(",", ", "), (p, 1.04 * top), xytext=(2, 0),
+                    textcoords="offset points", fontsize=7, color="C3", ha="left",
+                    va="bottom", annotation_clip=False)  # fmt: skip
+    ax.set_ylim(0, 1.2 * top if top > 0 else 1.0)
     ax.set_xlabel(f"test-bed reading [{xunit}]")
     ax.set_ylabel(f"standard uncertainty [{unit}]")
     numbered = "numbered" if plan.positions.size <= _NUMBERED else f"the first {_NUMBERED} numbered"
@@ -240,7 +242,9 @@ def plot_plan(
         f"{plan.positions.size} proposed reference measurements (stage 0), {numbered} in order",
         fontsize=9,
     )
-    ax.set_xlim(lo - pad, hi + pad)
+    # one turn with a margin, so a proposal at 0 or 360 stays in view
+    limits = (lo - pad, hi + pad) if period is None else (-0.03 * period, 1.03 * period)
+    ax.set_xlim(*limits)
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.22), ncol=5, frameon=False)
     if lower_name is not None:
         bx = axes[1]
@@ -252,6 +256,8 @@ def plot_plan(
         bx.set_xlabel(f"{lower_name} reading [{xunit}]")
         bx.set_ylabel(f"standard uncertainty [{unit}]")
         bx.set_title(f"the target: {lower_name}'s uncertainty over its readings", fontsize=9)
+        if period is not None:
+            bx.set_xlim(*limits)  # the same turn as above
         bx.legend(fontsize=7, loc="best")
     return fig
 

@@ -57,8 +57,9 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
     """One stage: above, the data and the fit as corrections (more accurate reading minus
     reading); below, the residuals about the fit with the fit's 95 % band and the 95 % band
     of the targets' noise. The stretches the reference could not reach are hatched."""
-    fig = Figure(figsize=(8.0, 5.8), layout="constrained")
-    ax, rx = fig.subplots(2, 1, sharex=True, height_ratios=(1, 1))
+    table = view.band is None  # a lookup table passes through its points: no residuals
+    fig = Figure(figsize=(8.0, 3.4 if table else 5.8), layout="constrained")
+    ax, rx = (fig.subplots(), None) if table else fig.subplots(2, 1, sharex=True)
     corr = view.targets - view.x
     f, su = display_scale(unit, float(np.max(np.abs(corr))) if corr.size else 0.0)
     ax.plot(view.grid, (view.mean - view.grid) * f, color="C0", lw=1.5, label="fit")
@@ -73,6 +74,10 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
     ax.set_ylabel(f"correction [{su}]")
     ax.legend(fontsize=7, loc="best")
     ax.set_title(f"{view.name}: more accurate reading minus reading", fontsize=9)
+    if rx is None:
+        ax.set_xlabel(f"reading [{unit}]")
+        _seams(ax, period=period, grid=view.grid)
+        return fig
     scale = max(
         np.max(np.abs(view.residuals), initial=0.0),
         np.max(view.band, initial=0.0) if view.band is not None else 0.0,
