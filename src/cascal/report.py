@@ -371,7 +371,7 @@ def comparison_figure(model: CalibrationModel, c: Comparison, names: tuple[str, 
 _CSS = (
     "body{font-family:sans-serif;max-width:60em;margin:2em auto;color:#222}"
     "table{border-collapse:collapse;margin:0.5em 0}td,th{border:1px solid #ccc;padding:2px 8px;"
-    "font-size:90%;text-align:left;overflow-wrap:anywhere}"
+    "font-size:90%;text-align:left}th{white-space:nowrap}td{overflow-wrap:anywhere}"
     "img{max-width:100%;display:block;margin:0.5em 0}"
     ".warn{color:#a33}"
 )
