@@ -161,6 +161,17 @@ def _seams(*axes, period, grid) -> None:
         ax.set_xlim(float(grid[0]), float(grid[-1]))
 
 
+def _stretch(a: float, b: float, period: float | None) -> str:
+    """``[a, b]``; on a rotary axis both ends on one turn, ``a to b (across 0)`` where the
+    stretch passes the zero."""
+    if period is None:
+        return f"[{_num(a)}, {_num(b)}]"
+    lo, hi = a % period, b % period
+    if hi < lo:
+        return f"{_num(lo)} to {_num(hi)} (across 0)"
+    return f"[{_num(lo)}, {_num(hi)}]"
+
+
 def _png(fig: Figure) -> str:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
@@ -239,7 +250,7 @@ def build_report(
         if view.screening is not None:
             parts.append(_screening_html(view.screening, unit, bool(np.any(view.counts > 1))))
         if view.gaps:
-            text = ", ".join(f"[{_num(a)}, {_num(b)}]" for a, b in view.gaps)
+            text = ", ".join(_stretch(a, b, model.period) for a, b in view.gaps)
             parts.append(
                 f"<p>Stretches where the reference could not measure ({e(unit)}): {e(text)}.</p>"
             )

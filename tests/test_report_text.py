@@ -1,0 +1,20 @@
+"""The report's words: a rotary axis's unreachable stretch is given on one turn."""
+
+from __future__ import annotations
+
+from cascal.demo import rotary_demo
+from cascal.report import build_report
+from cascal.workflow import fit_model
+from utils import demo_stages
+
+
+def test_a_rotary_stretch_across_zero_is_written_on_one_turn():
+    """The rotary demo's reference cannot reach 335 to 25 degrees: the report says so
+    (not [335, 385]); a linear stretch keeps its interval."""
+    ref, dev = demo_stages(rotary_demo(0))
+    model = fit_model([ref, dev], kernel="periodic", period=360.0, unit="deg", n_restarts=1)
+    html = build_report(model, source="rotary.json")
+    assert "could not measure (deg): 335 to 25 (across 0)." in html
+    assert "385" not in html.split("could not measure (deg):")[1].split("</p>")[0]
+    linear = fit_model(demo_stages(), n_restarts=1)
+    assert "could not measure (m): [0.343953, 0.528242]." in build_report(linear, source="l")
