@@ -20,11 +20,11 @@ import numpy as np
 
 from .baselines import OffsetTable, fit_table
 from .errors import CascalError, InputError
-from .gp import FittedGP, check_restarts, fit_gp
-from .kernels import Kernel, Periodic, make_kernel
+from .gp import FittedGP, fit_gp
+from .kernels import Kernel, make_kernel
 from .means import make_mean
 from .noise import Dense, Noise, as_noise
-from .validation import as_positions, check_increasing, check_pair, frozen
+from .validation import as_positions, check_count, check_increasing, check_pair, frozen
 
 __all__ = ["METHODS", "Cascade", "FittedCascade", "Stage"]
 
@@ -137,12 +137,10 @@ class Cascade:
             ) from None
         if len(stages) < 1:
             raise InputError("stages: expected at least one (x, y) pair")
-        check_restarts(n_restarts)
-        if seed is not None and not (isinstance(seed, int | np.integer) and seed >= 0):
-            raise InputError(f"seed: expected a whole number >= 0 or None, got {seed!r}")
+        check_count(n_restarts, "n_restarts", "optimiser starts", 1)
+        if seed is not None:
+            check_count(seed, "seed", "seed", 0)
         make_kernel(kernel, period=period)  # refused here, not at fit(): name, period
-        if period is not None and not isinstance(make_kernel(kernel, period=period), Periodic):
-            raise InputError(f"period: only the periodic kernel has one, got kernel {kernel!r}")
         if isinstance(mean, str):
             make_mean(mean, np.zeros(1), np.zeros(1))
         n = len(stages)

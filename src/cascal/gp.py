@@ -24,7 +24,7 @@ from .likelihood import Objective
 from .means import Mean, make_mean
 from .noise import Noise, as_noise
 from .optimize import OptimResult, maximize
-from .validation import as_positions, check_pair, frozen
+from .validation import as_positions, check_count, check_pair, frozen
 
 __all__ = ["FittedGP", "Objective", "Posterior", "fit_gp", "log_marginal_likelihood"]
 
@@ -348,9 +348,7 @@ def _fit_gp(
 ) -> FittedGP:
     xa, ya = check_pair(x, y, names)
     n = xa.size
-    check_restarts(n_restarts)
-    if period is not None and not (isinstance(kernel, str) and kernel.lower() == "periodic"):
-        raise InputError(f"period: only the periodic kernel has one, got kernel {kernel!r}")
+    check_count(n_restarts, "n_restarts", "optimiser starts", 1)
     kern = make_kernel(kernel, period=period)
     m = make_mean(mean, ya, xa)
     known = as_noise(noise, n)
@@ -387,8 +385,8 @@ def _fit_gp(
             value_grad_hess=obj.value_and_derivatives if obj.has_hessian else None,
             starts=starts,
             probes=_probes(obj.dim) if starts else None,
+            names=obj.names,
         )
-        optimization = replace(optimization, names=obj.names)
         if known is None and learn_noise and "noise_variance" not in (bounds or {}):
             optimization = _below_noise_floor(obj, b, optimization)
         theta = obj.full_theta(optimization.theta)
@@ -426,15 +424,6 @@ def _below_noise_floor(obj: Objective, b: np.ndarray, found: OptimResult) -> Opt
     )
 
 
-def check_restarts(n_restarts: object) -> None:
-    """Refuse ``n_restarts`` unless a whole number >= 1."""
-    whole = isinstance(n_restarts, int | np.integer) and not isinstance(n_restarts, bool)
-    if not whole or n_restarts < 1:  # type: ignore[operator]
-        raise InputError(
-            f"n_restarts: expected a whole number of optimiser starts >= 1, got {n_restarts!r}"
-        )
-
-
 def _probes(dim: int) -> list[np.ndarray]:
     """Offsets of :data:`PROBE` in log length scale (the first parameter of a table-started
     fit), both ways."""
@@ -459,18 +448,18 @@ def _from_dict(kern: Kernel, hp: dict[str, float], learn_noise: bool) -> tuple[K
         )
     try:
         vals = np.array([float(hp[k]) for k in kern.names])
-        float(hp.get("noise_variance", 0.0))
+        given = float(hp.get("noise_variance", 0.0))
     except (TypeError, ValueError):
         raise InputError(f"hyperparameters: expected numbers, got {hp}") from None
     if np.any(~np.isfinite(vals)) or np.any(vals <= 0):
         raise InputError(f"hyperparameters: expected positive finite values, got {hp}")
-    if not learn_noise and hp.get("noise_variance", 0.0) != 0.0:
+    if not learn_noise and given != 0.0:
         raise InputError(
             "hyperparameters: noise_variance given, but no white noise is learned on top of "
             "the known noise (learn_noise=False, the default for a known diagonal noise); "
             "pass learn_noise=True to add it, or leave it out"
         )
-    sn2 = float(hp.get("noise_variance", 0.0)) if learn_noise else 0.0
+    sn2 = given if learn_noise else 0.0
     if learn_noise and not (np.isfinite(sn2) and sn2 >= 0):
         raise InputError(f"hyperparameters: noise_variance must be >= 0, got {sn2}")
     return kern.with_theta(np.log(vals)), sn2

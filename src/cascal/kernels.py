@@ -311,8 +311,11 @@ def make_kernel(
 ) -> Kernel:
     """Build a kernel from its short name (``se``, ``matern32``, ``matern52``, ``periodic``).
 
-    A :class:`Kernel` passes through unchanged. ``periodic`` needs ``period``.
+    A :class:`Kernel` passes through unchanged. ``periodic`` needs ``period``, and only it
+    takes one.
     """
+    if period is not None and not (isinstance(name, str) and name.lower() == "periodic"):
+        raise InputError(f"period: only the periodic kernel has one, got kernel {name!r}")
     if isinstance(name, Kernel):
         return name
     key = str(name).lower()

@@ -252,6 +252,7 @@ def maximize(
     value_grad_hess: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray]] | None = None,
     starts: list[np.ndarray] | None = None,
     probes: list[np.ndarray] | None = None,
+    names: tuple[str, ...] = (),
 ) -> OptimResult:
     """Maximise ``value`` over the box ``bounds`` from several seeded starts.
 
@@ -270,6 +271,7 @@ def maximize(
         probes: Offsets (p,) from the best Newton optimum (Newton only): where the
             objective is higher there, another Newton run starts there (a nearby maximum
             that approximate starts merged with the one found). One value each.
+        names: Names of the parameters, kept in the result (:meth:`OptimResult.at_bounds`).
 
     Returns:
         The best optimum and one :class:`Start` per run.
@@ -319,7 +321,7 @@ def maximize(
                 starts.append(newton_maximize(value_grad_hess, t0, bounds, known=starts))
                 best = _best(starts)
         return OptimResult(
-            best.theta, best.value, tuple(starts), m, len(probes or ()), bounds=bounds
+            best.theta, best.value, tuple(starts), m, len(probes or ()), bounds, names
         )
     from scipy.optimize import minimize  # here: importing it costs 0.2 s at every CLI start
 
@@ -337,7 +339,7 @@ def maximize(
             )
         )
     best = _best(starts)
-    return OptimResult(best.theta, best.value, tuple(starts), m, bounds=bounds)
+    return OptimResult(best.theta, best.value, tuple(starts), m, bounds=bounds, names=names)
 
 
 def _best(starts: list[Start]) -> Start:

@@ -309,7 +309,7 @@ def plot_verification(
         for sign in (-1.0, 1.0):
             ax.axhline(sign * v.mpe * scale, color="C1", ls="--", lw=1,
                        label="±MPE" if sign > 0 else None)  # fmt: skip
-        accept = (v.mpe - v.k * v.u_reference) * scale  # ISO 14253-1: |e| + U_ref <= MPE
+        accept = v.acceptance * scale
         if 0.0 < accept < v.mpe * scale:
             for sign in (-1.0, 1.0):
                 ax.axhline(sign * accept, color="C1", ls=":", lw=1,

@@ -13,6 +13,7 @@ __all__ = [
     "Repeats",
     "aggregate_repeats",
     "as_positions",
+    "check_count",
     "check_increasing",
     "check_pair",
     "frozen",
@@ -45,9 +46,20 @@ def as_positions(a: object, name: str) -> np.ndarray:
     return arr
 
 
+def check_count(value: object, name: str, what: str, minimum: int) -> None:
+    """Refuse ``value`` (a number of ``what``, named ``name``) unless a whole number >=
+    ``minimum``."""
+    whole = isinstance(value, int | np.integer) and not isinstance(value, bool)
+    if not whole or value < minimum:  # type: ignore[operator]
+        raise InputError(f"{name}: expected a whole number of {what} >= {minimum}, got {value!r}")
+
+
 def frozen(a: np.ndarray) -> np.ndarray:
     """A read-only copy of ``a``: what a fitted object keeps, so neither the caller's later
-    edits of the array given nor edits of the array returned change it."""
+    edits of the array given nor edits of the array returned change it. An array this made
+    is returned as it is."""
+    if isinstance(a, np.ndarray) and a.dtype == float and a.flags.owndata and not a.flags.writeable:
+        return a
     out = np.array(a, dtype=float)
     out.setflags(write=False)
     return out

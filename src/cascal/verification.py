@@ -94,6 +94,12 @@ class Verification:
         return _ratio(self.error, self.k * self.u)
 
     @property
+    def acceptance(self) -> float | None:
+        """``mpe - k u_reference``: the largest |error| that conforms (ISO 14253-1); None
+        without MPE."""
+        return None if self.mpe is None else self.mpe - self.k * self.u_reference
+
+    @property
     def conforms(self) -> np.ndarray | None:
         """``|error| + k u_reference <= mpe`` at each point, shape (m,); None without MPE."""
         if self.mpe is None:

@@ -28,6 +28,7 @@ from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
 from .screening import LEVEL, Screening, Spread, screen, screen_repeats
 from .tabulate import predict_many
+from .validation import check_count
 from .verification import COVERAGE_FACTOR, Comparison, Verification, compare, verify
 
 __all__ = [
@@ -564,8 +565,7 @@ def plan_measurements(
             unit; default: as precise as the average existing point.
         progress: Called as ``progress(chosen, k)`` after every choice.
     """
-    if not isinstance(k, int | np.integer) or isinstance(k, bool) or k < 1:
-        raise InputError(f"k: expected a whole number of measurements >= 1, got {k!r}")
+    check_count(k, "k", "measurements", 1)
     testbed = model.fitted.models[0]
     if not isinstance(testbed, FittedGP):
         raise InputError(
