@@ -37,6 +37,10 @@ def test_demo_writes_and_points_to_its_results(demo):
         assert (linear / name).stat().st_size > 0, name
     assert "the device (or its mounting) has changed since the old calibration" in res.stdout
     assert f"$ cascal info {linear / 'model_recalibrated.json'}" in res.stdout
+    # the device zeroed 100 m away: named by the identity fit, fitted with --mean offset
+    assert "testbed_device_zero_offset.csv: the corrections average -100.0" in res.stderr
+    assert "prior mean offset -100.0" in res.stdout
+    assert (linear / "model_zero_offset.json").stat().st_size > 0
     assert (out / "rotary_periodic.png").stat().st_size > 10_000
     assert "Where to look:" in res.stdout
     assert res.stdout.count("x smaller") == 2
