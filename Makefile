@@ -29,6 +29,7 @@ BENCH_ENV := env -u OPENBLAS_CORETYPE -u OPENBLAS_L2_SIZE
 
 bench: $(STAMP)
 	$(BENCH_ENV) OPENBLAS_NUM_THREADS=1 $(BIN)/python benchmarks/bench_fit.py
+	$(BENCH_ENV) OPENBLAS_NUM_THREADS=1 $(BIN)/python benchmarks/bench_large.py
 	$(BENCH_ENV) $(BIN)/python benchmarks/bench_correct.py
 	$(BENCH_ENV) $(BIN)/python benchmarks/bench_study.py
 

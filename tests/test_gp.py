@@ -639,3 +639,75 @@ def test_a_noise_variance_that_would_be_ignored_is_refused(data):
         fit_gp(x, y, noise=1e-8, hyperparameters=hp)
     fit = fit_gp(x, y, noise=1e-8, learn_noise=True, hyperparameters=hp)
     assert fit.noise_variance == 1e-4
+
+
+def _large_stage(n: int, seed: int):
+    """n readings over [0, 1] whose correction has a smooth part and one of period 6
+    spacings (an encoder's interpolation error), with 1 um noise."""
+    rng = np.random.default_rng(seed)
+    x = np.sort(rng.uniform(0.0, 1.0, n))
+    f = 3e-4 * np.sin(7 * x) + 2e-5 * np.sin(2 * np.pi * x * n / 6)
+    return x, x + f + 1e-6 * rng.standard_normal(n)
+
+
+def _screened(obj: Objective, seed: int = 0):
+    """The optimum of the search without a table or subsets: five Newton runs from 30
+    screened random candidates (what large stages had before)."""
+    from cascal.optimize import maximize
+
+    vgh, rng = obj.value_and_derivatives, np.random.default_rng(seed)
+    return maximize(obj.value, obj.value_and_grad, obj.bounds(), n_restarts=5, rng=rng,
+                    value_grad_hess=vgh)  # fmt: skip
+
+
+@pytest.mark.parametrize("with_dense", [False, True])
+def test_a_large_stage_starts_from_its_subsets_optima(with_dense):
+    """Over 2 * SUBSET points and no table: the runs start from the optima of two subsets
+    (no candidates screened) and end at least as high as five runs from screened random
+    candidates; the short-period part is found (the screened runs miss it here); the
+    optimum is a stationary point of the full objective (finite differences)."""
+    from cascal.gp import SUBSET
+
+    n = 2 * SUBSET + 40
+    x, y = _large_stage(n, 3)
+    dense = None
+    if with_dense:  # a stage-A posterior as the known noise, as in a cascade
+        xa = np.linspace(-0.02, 1.02, 30)
+        _, U = fit_gp(xa, xa + 2e-4 * np.sin(5 * xa), noise=1e-12).posterior_factor(x)
+        dense = Dense.from_factor(U)
+    fit = fit_gp(x, y, noise=dense)
+    opt = fit.optimization
+    assert opt.n_candidates == 0 and 1 <= len(opt.starts) <= 5
+    obj = Objective(x, y - x, SquaredExp(), dense, True, profile=dense is None)
+    ref = _screened(obj)
+    assert opt.value >= ref.value - 1e-6
+    assert fit.kernel.length_scale < 10.0 / n  # the period of 6 spacings, not the smooth part
+    assert opt.at_bounds() == []
+    assert np.max(np.abs(fd_gradient(obj.value, opt.theta, h=1e-5))) < 1e-2
+
+
+def test_a_large_stage_with_a_smooth_correction_matches_the_screened_search():
+    """Without the short-period part both searches find the same optimum (to the runs'
+    convergence), the subsets' in a quarter of the evaluations or fewer."""
+    from cascal.gp import SUBSET
+
+    rng = np.random.default_rng(4)
+    x = np.linspace(0.0, 1.0, 2 * SUBSET + 1)
+    y = x + 3e-4 * np.sin(7 * x) + 1e-6 * rng.standard_normal(x.size)
+    fit = fit_gp(x, y)
+    ref = _screened(Objective(x, y - x, SquaredExp(), None, True, profile=True))
+    assert fit.optimization.value == pytest.approx(ref.value, abs=1e-6)
+    assert fit.optimization.n_evals <= ref.n_evals / 4
+
+
+def test_subset_noise_is_the_restricted_noise():
+    from cascal.gp import _restrict
+
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((6, 3))
+    idx = np.array([0, 2, 5])
+    sub = _restrict(Dense(A @ A.T), idx, 6)
+    assert_allclose(sub.dense(3), (A @ A.T)[np.ix_(idx, idx)], rtol=1e-14, atol=1e-14)
+    v = rng.random(6)
+    d = _restrict(Diagonal(v), idx, 6)
+    assert d.is_diagonal and np.array_equal(d.diagonal(3), v[idx])

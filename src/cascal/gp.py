@@ -10,6 +10,7 @@ weights: O(M N) for the mean, O(M N^2) only when uncertainty is asked for.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import numbers
 from dataclasses import dataclass, replace
@@ -22,7 +23,7 @@ from .errors import InputError
 from .kernels import Kernel, Periodic, _Scaled, make_kernel
 from .likelihood import Objective
 from .means import Mean, make_mean
-from .noise import Noise, as_noise
+from .noise import Dense, Diagonal, Noise, as_noise
 from .optimize import OptimResult, maximize
 from .validation import as_positions, check_count, check_pair, frozen
 
@@ -44,6 +45,12 @@ _BLAS: list = []
 #: with the bound this many times lower: readings of nanometre noise on millimetre errors
 #: want a noise about 1e-12 of the signal variance.
 NOISE_FLOOR_DROP = 1e3
+#: Points of each subset whose optima start the fit of a stage too large for a likelihood
+#: table (over ``2 * SUBSET`` points), see :func:`_subset_starts`; on an equally spaced
+#: grid the subsets use the cached eigenbases of :mod:`cascal.surrogate` (up to 160 points).
+SUBSET = surrogate.MAX_POINTS
+#: Subset optima closer than this (log units, every parameter) start one run.
+_DISTINCT = 0.05
 
 #: Set by :func:`pin_blas`: BLAS stays single-threaded, so the context has nothing to do.
 _PINNED: list[bool] = []
@@ -371,22 +378,7 @@ def _fit_gp(
         profile = isinstance(kern, _Scaled) and known is None and learn_noise and not bounded
         obj = Objective(xa, r, kern, known, learn_noise, profile=profile)
         b = obj.bounds(bounds)
-        starts = None
-        if profile:
-            starts = surrogate.profiled_starts(kern, xa, r, b, n_restarts)
-        elif known is not None and not known.is_diagonal and learn_noise and not bounded:
-            starts = surrogate.dense_starts(kern, xa, r, known.factor(n), b, n_restarts)
-        optimization = maximize(
-            obj.value,
-            obj.value_and_grad,
-            b,
-            n_restarts=n_restarts,
-            rng=None if starts else np.random.default_rng(seed),
-            value_grad_hess=obj.value_and_derivatives if obj.has_hessian else None,
-            starts=starts,
-            probes=_probes(obj.dim) if starts else None,
-            names=obj.names,
-        )
+        optimization = _search(obj, b, n_restarts, seed, tabulate=not bounded)
         if known is None and learn_noise and "noise_variance" not in (bounds or {}):
             optimization = _below_noise_floor(obj, b, optimization)
         theta = obj.full_theta(optimization.theta)
@@ -396,6 +388,82 @@ def _fit_gp(
         factor = obj.factor_at(optimization.theta)
         return _condition(xa, ya, kern, m, known, sn2, optimization, factor)
     return _condition(xa, ya, kern, m, known, sn2, optimization)
+
+
+def _search(obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool) -> OptimResult:
+    """Maximise ``obj`` over the log bounds ``b`` (dim, 2): Newton runs from the best local
+    maxima of a likelihood table where one applies (``tabulate``: no user bounds on the
+    variances), else, for a stage of over ``2 * SUBSET`` points, from the optima of two of
+    its subsets (:func:`_subset_starts`), else from screened random candidates."""
+    starts = None
+    known = obj.known
+    if obj.profile:
+        starts = surrogate.profiled_starts(obj.kernel, obj.x, obj.r, b, n_restarts)
+    elif known is not None and not known.is_diagonal and obj.learn_noise and tabulate:
+        starts = surrogate.dense_starts(
+            obj.kernel, obj.x, obj.r, known.factor(obj.n), b, n_restarts
+        )
+        if starts is None:  # off the grid: the table without the known noise
+            starts = _white_starts(obj, b, n_restarts)
+    if starts is None and obj.n > 2 * SUBSET:
+        starts = _subset_starts(obj, b, n_restarts, seed, tabulate)
+    return maximize(
+        obj.value,
+        obj.value_and_grad,
+        b,
+        n_restarts=n_restarts,
+        rng=None if starts else np.random.default_rng(seed),
+        value_grad_hess=obj.value_and_derivatives if obj.has_hessian else None,
+        starts=starts,
+        probes=_probes(obj.dim) if starts else None,
+        names=obj.names,
+    )
+
+
+def _white_starts(obj: Objective, b: np.ndarray, n_restarts: int) -> list[np.ndarray] | None:
+    """Starts ``[kernel theta, log noise_variance]`` for an objective with a known dense
+    noise off the grid: the local maxima of the profiled table without that noise (a
+    known noise only adds variance; the runs climb from there), or None where no table
+    applies."""
+    if not isinstance(obj.kernel, _Scaled):
+        return None
+    white = Objective(obj.x, obj.r, obj.kernel, None, True, profile=True)
+    found = surrogate.profiled_starts(obj.kernel, obj.x, obj.r, white.bounds(), n_restarts)
+    return None if found is None else [white.full_theta(t) for t in found]
+
+
+def _subset_starts(
+    obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool
+) -> list[np.ndarray]:
+    """Starts for a large stage: the optima of the same search on ``SUBSET`` of its points
+    spread evenly over the range (which sees the long length scales) and on the ``SUBSET``
+    neighbouring points at its middle (which sees the short ones, down to the readings'
+    spacing). Each subset's optima within :data:`surrogate.MARGIN` of its best, taken in
+    turn from the two, distinct, at most ``n_restarts``. Each subset costs about
+    ``(SUBSET / n)^3`` of a full evaluation per evaluation."""
+    n = obj.n
+    order = np.argsort(obj.x, kind="stable")
+    spread = order[np.round(np.linspace(0.0, n - 1.0, SUBSET)).astype(np.intp)]
+    middle = order[(n - SUBSET) // 2 : (n - SUBSET) // 2 + SUBSET]
+    found = []
+    for idx in (spread, middle):
+        known = None if obj.known is None else _restrict(obj.known, idx, n)
+        sub = Objective(obj.x[idx], obj.r[idx], obj.kernel, known, obj.learn_noise, obj.profile)
+        runs = sorted(_search(sub, b, n_restarts, seed, tabulate).starts, key=lambda s: -s.value)
+        found.append([s.theta for s in runs if s.value >= runs[0].value - surrogate.MARGIN])
+    starts: list[np.ndarray] = []
+    for pair in itertools.zip_longest(*found):
+        for t in pair:
+            if t is not None and all(np.max(np.abs(t - s)) > _DISTINCT for s in starts):
+                starts.append(t)
+    return starts[:n_restarts]
+
+
+def _restrict(noise: Noise, idx: np.ndarray, n: int) -> Noise:
+    """``noise`` of n points at the points ``idx`` (diagonal noise stays diagonal)."""
+    if noise.is_diagonal:
+        return Diagonal(noise.diagonal(n)[idx])
+    return Dense(noise.dense(n)[np.ix_(idx, idx)], atol=np.inf)
 
 
 def _below_noise_floor(obj: Objective, b: np.ndarray, found: OptimResult) -> OptimResult:
