@@ -121,6 +121,22 @@ def test_edited_file_fails_the_checksum(saved):
         load_model(saved)
 
 
+def test_checksum_is_of_the_canonical_json(models):
+    """The checksum hashes the text json.dumps gives with sorted keys and no spaces, also
+    when lists of numbers come formatted in advance (as save_model does), and with a
+    column name holding ", " (a list of strings is formatted afresh)."""
+    import hashlib
+
+    doc = model_to_dict(models["bayes"])
+    doc["provenance"]["inputs"][0]["columns"] = ["reading, mm", "reference"]
+    canon = json.dumps(doc, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    expected = hashlib.sha256(canon.encode("ascii")).hexdigest()
+    texts = mf._number_texts(doc, {})
+    assert len(texts) > 10
+    assert mf._checksum(doc, texts) == expected == mf._checksum(doc)
+    assert json.loads(mf._pretty(doc, texts=texts)) == json.loads(canon)
+
+
 def test_truncated_file(saved):
     saved.write_text(saved.read_text()[:-40])
     with pytest.raises(ModelFileError, match="truncated"):

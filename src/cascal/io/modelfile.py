@@ -140,8 +140,9 @@ class CalibrationModel:
 def save_model(path: str | os.PathLike, model: CalibrationModel) -> Path:
     """Write ``model`` to ``path`` as JSON, atomically (a temporary file, then a rename)."""
     doc = model_to_dict(model)
-    doc["checksum"] = {"algorithm": "sha256", "value": _checksum(doc)}
-    return write_text(path, _pretty(doc) + "\n")
+    texts = _number_texts(doc, {})  # each list of numbers formatted once, for both uses
+    doc["checksum"] = {"algorithm": "sha256", "value": _checksum(doc, texts)}
+    return write_text(path, _pretty(doc, texts=texts) + "\n")
 
 
 def model_to_dict(model: CalibrationModel) -> dict[str, Any]:
@@ -478,23 +479,51 @@ def _finite(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
 
 
-def _checksum(doc: dict) -> str:
-    canon = json.dumps(
-        doc, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False
-    )
-    return hashlib.sha256(canon.encode("ascii")).hexdigest()
+def _checksum(doc: dict, texts: dict[int, str] | None = None) -> str:
+    """SHA-256 of ``doc``'s canonical JSON (sorted keys, no spaces, ASCII), the text
+    ``json.dumps(doc, sort_keys=True, separators=(",", ":"), ensure_ascii=True)`` gives;
+    ``texts`` holds lists of numbers already formatted (:func:`_number_texts`)."""
+    return hashlib.sha256(_canonical(doc, texts or {}).encode("ascii")).hexdigest()
 
 
-def _pretty(obj: Any, indent: int = 0) -> str:
+def _canonical(obj: Any, texts: dict[int, str]) -> str:
+    if isinstance(obj, dict):
+        items = (f"{json.dumps(k)}:{_canonical(obj[k], texts)}" for k in sorted(obj))
+        return "{" + ",".join(items) + "}"
+    if isinstance(obj, list) and obj and isinstance(obj[0], dict | list):
+        return "[" + ",".join(_canonical(v, texts) for v in obj) + "]"
+    text = texts.get(id(obj)) if isinstance(obj, list) else None
+    if text is not None:  # numbers contain no ", ": only the separators change
+        return text.replace(", ", ",")
+    return json.dumps(obj, separators=(",", ":"), ensure_ascii=True, allow_nan=False)
+
+
+def _number_texts(obj: Any, out: dict[int, str]) -> dict[int, str]:
+    """``json.dumps`` of every list of numbers (no strings) in ``obj``, by the list's id."""
+    if isinstance(obj, dict):
+        for v in obj.values():
+            _number_texts(v, out)
+    elif isinstance(obj, list) and obj and isinstance(obj[0], dict | list):
+        for v in obj:
+            _number_texts(v, out)
+    elif isinstance(obj, list):
+        text = json.dumps(obj, allow_nan=False)
+        if '"' not in text:  # no strings (whose ", " would be no separator)
+            out[id(obj)] = text
+    return out
+
+
+def _pretty(obj: Any, indent: int = 0, texts: dict[int, str] | None = None) -> str:
     """JSON with objects spread over lines and lists of numbers kept on one line."""
     pad = " " * (indent + 2)
     if isinstance(obj, dict) and obj:
-        items = [f"{pad}{json.dumps(k)}: {_pretty(v, indent + 2)}" for k, v in obj.items()]
+        items = [f"{pad}{json.dumps(k)}: {_pretty(v, indent + 2, texts)}" for k, v in obj.items()]
         return "{\n" + ",\n".join(items) + "\n" + " " * indent + "}"
-    if isinstance(obj, list) and any(isinstance(v, dict | list) for v in obj):
-        items = [pad + _pretty(v, indent + 2) for v in obj]
+    if isinstance(obj, list) and obj and isinstance(obj[0], dict | list):
+        items = [pad + _pretty(v, indent + 2, texts) for v in obj]
         return "[\n" + ",\n".join(items) + "\n" + " " * indent + "]"
-    return json.dumps(obj, allow_nan=False)
+    text = texts.get(id(obj)) if texts and isinstance(obj, list) else None
+    return json.dumps(obj, allow_nan=False) if text is None else text
 
 
 def _reject_constant(name: str) -> None:
