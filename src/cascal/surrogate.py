@@ -20,8 +20,9 @@ One decomposition of ``R`` per length scale gives a whole row over ``g``:
 
 Real readings sit off the grid by their noise, so the grid table is a surrogate; the exact
 off-grid table is coarse. Either way its best local maxima are where exact Newton runs
-start, never results. Other kernels (periodic, composite) get None: the caller screens
-random candidates instead.
+start, never results. The periodic kernel (its period fixed) has the off-grid table only:
+its correlation depends on the period as well as on length scale / spacing. Composite
+kernels get None: the caller screens random candidates instead.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.linalg import lapack
 
-from .kernels import Kernel, Matern32, Matern52, SquaredExp
+from .kernels import Kernel, Matern32, Matern52, Periodic, SquaredExp
 
 __all__ = ["dense_starts", "grid_spacing", "profiled_starts"]
 
@@ -73,6 +74,9 @@ _NOISE = np.linspace(-4.0, 2.0, 7)
 #: (``_DIFF``, exact: both grids are integers) for the 49 cells (``_CELL`` indexes them).
 _DIFF, _CELL = np.unique(np.subtract.outer(_SIGNAL, _NOISE).ravel(), return_inverse=True)
 _KERNELS = (SquaredExp, Matern32, Matern52)
+#: Kernels with an off-grid table: also the periodic one (its correlation depends on the
+#: period too, so the grid's cached eigenbases do not serve it).
+_OFFGRID_KERNELS = (*_KERNELS, Periodic)
 
 
 @dataclass(frozen=True, slots=True)
@@ -230,15 +234,15 @@ def profiled_starts(
     scan = _scan(kernel, x, r, bounds[0])
     if scan is not None:
         ll, table = np.log(RATIOS * scan.h), scan.table
-    elif type(kernel) in _KERNELS and 3 <= x.size <= MAX_OFFGRID:
-        ll, table = _offgrid_table(type(kernel), x, r, bounds[0], k)
+    elif type(kernel) in _OFFGRID_KERNELS and 3 <= x.size <= MAX_OFFGRID:
+        ll, table = _offgrid_table(kernel, x, r, bounds[0], k)
     else:
         return None
     return [np.array([ll[i], math.log(GAINS[j])]) for i, j in _local_maxima(table, k)]
 
 
 def _offgrid_table(
-    kind: type, x: np.ndarray, r: np.ndarray, log_ls: np.ndarray, k: int
+    kernel: Kernel, x: np.ndarray, r: np.ndarray, log_ls: np.ndarray, k: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rows ``(log length scales (s,), table (s, c))``, sorted: :data:`COARSE` apart over
     ``log_ls`` (2,), plus rows :data:`FINE` apart out to the neighbours of each of the
@@ -246,7 +250,7 @@ def _offgrid_table(
     lo, hi = float(log_ls[0]), float(log_ls[1])
     ll = np.linspace(lo, hi, math.ceil((hi - lo) / COARSE) + 1)
     d = np.subtract.outer(x, x)
-    table = _tridiagonal_table(kind, d, r, ll)
+    table = _tridiagonal_table(kernel, d, r, ll)
     if ll.size > 1:
         offsets = np.arange(FINE, ll[1] - ll[0] - 0.5 * FINE, FINE)
         fine = np.unique(
@@ -255,16 +259,19 @@ def _offgrid_table(
         fine = fine[(fine > lo) & (fine < hi)]
         if fine.size:
             ll = np.concatenate([ll, fine])
-            table = np.concatenate([table, _tridiagonal_table(kind, d, r, fine)])
+            table = np.concatenate([table, _tridiagonal_table(kernel, d, r, fine)])
             order = np.argsort(ll, kind="stable")
             ll, table = ll[order], table[order]
     return ll, table
 
 
-def _tridiagonal_table(kind: type, d: np.ndarray, r: np.ndarray, log_ls: np.ndarray) -> np.ndarray:
-    """Profiled log marginal likelihood, up to a constant, at length scales ``exp(log_ls)``
-    (s,) and noise ratios :data:`GAINS` (c,) for readings in any position, given by their
-    differences ``d`` (n, n): shape (s, c), -inf where not positive definite.
+def _tridiagonal_table(
+    kernel: Kernel, d: np.ndarray, r: np.ndarray, log_ls: np.ndarray
+) -> np.ndarray:
+    """Profiled log marginal likelihood of ``kernel`` (its period, if periodic, kept), up to
+    a constant, at length scales ``exp(log_ls)`` (s,) and noise ratios :data:`GAINS` (c,)
+    for readings in any position, given by their differences ``d`` (n, n): shape (s, c),
+    -inf where not positive definite.
 
     A tridiagonal ``T`` with ``R = V T V^T`` and ``V``'s first column ``r / |r|`` gives a
     row: with the pivots of the backward recurrence ``p_(m-1) = t_(m-1) + g``,
@@ -282,11 +289,11 @@ def _tridiagonal_table(kind: type, d: np.ndarray, r: np.ndarray, log_ls: np.ndar
         length_scale = math.exp(float(log_ls[i]))
         red = None
         if lowrank:
-            red = _lowrank_reduction(_correlation(kind, d, length_scale), r)
+            red = _lowrank_reduction(_correlation(kernel, d, length_scale), r)
             lowrank = red is not None
         if red is None:
             bordered[0, 1:] = r  # the reduction overwrites it
-            bordered[1:, 1:] = _correlation(kind, d, length_scale)
+            bordered[1:, 1:] = _correlation(kernel, d, length_scale)
             red = _full_reduction(bordered)
         reductions[i] = red
     m = -(-max(t.size for t, _ in reductions.values()) // 8) * 8  # rows of 8 for _sum_log
@@ -357,9 +364,9 @@ def _lower(k: int) -> tuple[np.ndarray, np.ndarray]:
     return np.tril_indices(k)
 
 
-def _correlation(kind: type, d: np.ndarray, length_scale: float) -> np.ndarray:
+def _correlation(kernel: Kernel, d: np.ndarray, length_scale: float) -> np.ndarray:
     """Correlation matrix (n, n) at differences ``d`` (n, n), a new array."""
-    return kind(length_scale, 1.0).correlation(d, False)[0]
+    return kernel.unit(length_scale).correlation(d, False)[0]  # type: ignore[attr-defined]
 
 
 def _sum_log(a: np.ndarray, axis: int) -> np.ndarray:
