@@ -18,3 +18,25 @@ def test_a_rotary_stretch_across_zero_is_written_on_one_turn():
     assert "385" not in html.split("could not measure (deg):")[1].split("</p>")[0]
     linear = fit_model(demo_stages(), n_restarts=1)
     assert "could not measure (m): [0.343953, 0.528242]." in build_report(linear, source="l")
+
+
+def test_uncertainties_are_also_given_in_the_figures_unit():
+    """The report's text gives u in the file's unit and in the unit its figures use (µm
+    for metres, arcsec for small angles); the plan's table is in the figure's unit."""
+    import re
+
+    import numpy as np
+
+    from cascal.report import correction_curve
+
+    model = fit_model(demo_stages(), n_restarts=1)
+    html = build_report(model, source="linear.json")
+    u = float(np.max(correction_curve(model).u))
+    assert f"Largest u over the calibrated range: {u:.6g} m ({u * 1e6:.3g} µm)." in html
+    assert "RMS u after [µm]" in html and "largest u after [µm]" in html
+    sd = re.search(r"standard deviation of ([-+.e\d]+) m \(([.\d]+) µm\)", html)
+    assert sd and float(sd[2]) == float(f"{float(sd[1]) * 1e6:.3g}")
+    ref, dev = demo_stages(rotary_demo(0))
+    rotary = fit_model([ref, dev], kernel="periodic", period=360.0, unit="deg", n_restarts=1)
+    text = build_report(rotary, source="rotary.json")
+    assert re.search(r"Largest u over the calibrated range: [-+.e\d]+ deg \([.\d]+ arcsec\)", text)

@@ -267,7 +267,8 @@ def build_report(
     parts.append(f"<p>{e(note)}</p>")
     if curve.u is not None:
         parts.append(
-            f"<p>Largest u over the calibrated range: {_num(float(np.max(curve.u)))} {e(unit)}.</p>"
+            f"<p>Largest u over the calibrated range: {e(_quantity(float(np.max(curve.u)), unit))}."
+            "</p>"
         )
     parts.append(_img(correction_figure(curve, unit=unit, period=model.period), "final correction"))
     if curve.u is not None:
@@ -301,12 +302,13 @@ def _screening_html(s: Screening, unit: str, repeats: bool) -> str:
         (_num(q.reading), _num(q.target), _num(q.predicted), _num(q.std), f"{q.z:+.1f}")
         for q in s.suspects
     ]
-    head = [f"reading [{unit}]", f"target [{unit}]", "predicted by the others", "u", "z"]
+    head = [f"reading [{unit}]", f"target [{unit}]", "predicted by the others", f"u [{unit}]", "z"]
     k = len(s.suspects)
     cap = " More points disagree than the screening takes out: the model is in doubt."
     noise = (
         f" Without {'them' if k > 1 else 'it'} the learned noise would be "
-        f"{_num(s.noise_std_without)} {html.escape(unit)} instead of {_num(s.noise_std)}."
+        f"{html.escape(_quantity(s.noise_std_without, unit))} instead of "
+        f"{html.escape(_quantity(s.noise_std, unit))}."
         if s.noise_std_without != s.noise_std
         else ""
     )
@@ -336,17 +338,22 @@ def _plan_section(model: CalibrationModel) -> list[str]:
         f"<p>{plan.positions.size} further reference measurements of stage 0, chosen one at a "
         f"time among the test-bed readings the reference points cover ({e(reach)} {e(unit)}), "
         f"each where it most lowers {e(mp.target)}; each with a standard deviation of "
-        f"{_num(float(np.sqrt(plan.noise_variance)))} {e(unit)}. <code>cascal plan</code> "
+        f"{e(_quantity(float(np.sqrt(plan.noise_variance)), unit))}. <code>cascal plan</code> "
         "proposes more, or within other reach.</p>"
     )
-    rows = [("now", "", _num(plan.u_rms[0]), _num(plan.u_max[0]))]
+    f, shown = display_scale(unit, float(plan.u_max[0]))  # the figure's unit
+    rows = [("now", "", _num(plan.u_rms[0] * f), _num(plan.u_max[0] * f))]
     rows += [
-        (str(k), _num(p), _num(plan.u_rms[k]), _num(plan.u_max[k]))
+        (str(k), _num(p), _num(plan.u_rms[k] * f), _num(plan.u_max[k] * f))
         for k, p in enumerate(plan.positions, 1)
     ]
-    out.append(
-        _table(["order", f"test-bed reading [{unit}]", "RMS u after", "largest u after"], rows)
-    )
+    head = [
+        "order",
+        f"test-bed reading [{unit}]",
+        f"RMS u after [{shown}]",
+        f"largest u after [{shown}]",
+    ]
+    out.append(_table(head, rows))
     return [*out, _img(plan_figure(model, mp), "proposed reference measurements")]
 
 
@@ -401,6 +408,16 @@ def _table(head: list[str], rows: list[tuple[str, ...]], *, header: bool = True)
 
 def _img(fig: Figure, alt: str) -> str:
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{_png(fig)}">'
+
+
+def _quantity(v: float | None, unit: str) -> str:
+    """A small quantity (an uncertainty, a noise) in ``unit``, and in the unit the figures
+    use where that differs: ``7.7213e-05 m (77.2 µm)``."""
+    f, shown = display_scale(unit, v or 0.0)
+    text = f"{_num(v)} {unit}"
+    if shown == unit or v is None or not math.isfinite(v):
+        return text
+    return f"{text} ({v * f:.3g} {shown})"
 
 
 def _num(v: float | None) -> str:
