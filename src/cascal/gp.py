@@ -10,7 +10,6 @@ weights: O(M N) for the mean, O(M N^2) only when uncertainty is asked for.
 from __future__ import annotations
 
 import contextlib
-import itertools
 import math
 import numbers
 from dataclasses import dataclass, replace
@@ -19,12 +18,12 @@ import numpy as np
 from scipy.linalg import lapack, solve_triangular
 
 from . import linalg, surrogate
-from .errors import InputError
+from .errors import InputError, NumericalError
 from .kernels import Kernel, Periodic, _Scaled, make_kernel
 from .likelihood import Objective
 from .means import Mean, make_mean
 from .noise import Dense, Diagonal, Noise, as_noise
-from .optimize import OptimResult, maximize
+from .optimize import OptimResult, _safe, maximize
 from .validation import as_positions, check_count, check_pair, frozen
 
 __all__ = ["FittedGP", "Objective", "Posterior", "fit_gp", "log_marginal_likelihood"]
@@ -49,8 +48,10 @@ NOISE_FLOOR_DROP = 1e3
 #: table (over ``2 * SUBSET`` points), see :func:`_subset_starts`; on an equally spaced
 #: grid the subsets use the cached eigenbases of :mod:`cascal.surrogate` (up to 160 points).
 SUBSET = surrogate.MAX_POINTS
-#: Subset optima closer than this (log units, every parameter) start one run.
+#: Subset optima closer than this (log units, every parameter) are one candidate.
 _DISTINCT = 0.05
+#: Runs of a large stage start at least this far apart (log units, some parameter).
+_DIVERSE = 0.5
 
 #: Set by :func:`pin_blas`: BLAS stays single-threaded, so the context has nothing to do.
 _PINNED: list[bool] = []
@@ -323,12 +324,13 @@ def fit_gp(
         hyperparameters: Given values by name (``length_scale``, ``variance``,
             ``noise_variance``, ...); nothing is optimised.
         n_restarts: Local optimiser starts: the best local maxima of a likelihood table
-            (SE and Matern kernels, :mod:`cascal.surrogate`), at most this many, then one
-            more run wherever the likelihood is higher 0.2 (log) to either side of the best
-            optimum's length scale (:data:`PROBE`); else exactly this many, after
-            screening seeded random candidates.
+            (SE, Matern and periodic kernels, :mod:`cascal.surrogate`), or for a stage of
+            over ``2 * SUBSET`` points without one the best optima of its subsets, at most
+            this many, then one more run wherever the likelihood is higher 0.2 (log) to
+            either side of the best optimum's length scale (:data:`PROBE`); else exactly
+            this many, after screening seeded random candidates.
         seed: Seed, SeedSequence or Generator for screened starts (unused where a table
-            gives the starts).
+            gives the starts; a large stage's subsets screen with it where they have none).
         period: Period of the ``"periodic"`` kernel, in the unit of ``x``.
         bounds: Optimisation bounds by hyperparameter name, natural units.
         names: Names of ``x`` and ``y`` in error messages.
@@ -393,8 +395,9 @@ def _fit_gp(
 def _search(obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool) -> OptimResult:
     """Maximise ``obj`` over the log bounds ``b`` (dim, 2): Newton runs from the best local
     maxima of a likelihood table where one applies (``tabulate``: no user bounds on the
-    variances), else, for a stage of over ``2 * SUBSET`` points, from the optima of two of
-    its subsets (:func:`_subset_starts`), else from screened random candidates."""
+    variances), else, for a stage of over ``2 * SUBSET`` points, from the optima of its
+    subsets (:func:`_subset_starts`; their ranking's values count as candidates), else from
+    screened random candidates."""
     starts = None
     known = obj.known
     if obj.profile:
@@ -405,9 +408,10 @@ def _search(obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool
         )
         if starts is None:  # off the grid: the table without the known noise
             starts = _white_starts(obj, b, n_restarts)
+    ranked = 0
     if starts is None and obj.n > 2 * SUBSET:
-        starts = _subset_starts(obj, b, n_restarts, seed, tabulate)
-    return maximize(
+        starts, ranked = _subset_starts(obj, b, n_restarts, seed, tabulate)
+    found = maximize(
         obj.value,
         obj.value_and_grad,
         b,
@@ -418,6 +422,7 @@ def _search(obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool
         probes=_probes(obj.dim) if starts else None,
         names=obj.names,
     )
+    return replace(found, n_candidates=found.n_candidates + ranked) if ranked else found
 
 
 def _white_starts(obj: Objective, b: np.ndarray, n_restarts: int) -> list[np.ndarray] | None:
@@ -428,35 +433,46 @@ def _white_starts(obj: Objective, b: np.ndarray, n_restarts: int) -> list[np.nda
     if not isinstance(obj.kernel, _Scaled):
         return None
     white = Objective(obj.x, obj.r, obj.kernel, None, True, profile=True)
-    found = surrogate.profiled_starts(obj.kernel, obj.x, obj.r, white.bounds(), n_restarts)
+    wb = white.bounds()
+    wb[0] = b[0]  # the length scale's bounds as given
+    found = surrogate.profiled_starts(obj.kernel, obj.x, obj.r, wb, n_restarts)
     return None if found is None else [white.full_theta(t) for t in found]
 
 
 def _subset_starts(
     obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool
-) -> list[np.ndarray]:
-    """Starts for a large stage: the optima of the same search on ``SUBSET`` of its points
-    spread evenly over the range (which sees the long length scales) and on the ``SUBSET``
-    neighbouring points at its middle (which sees the short ones, down to the readings'
-    spacing). Each subset's optima within :data:`surrogate.MARGIN` of its best, taken in
-    turn from the two, distinct, at most ``n_restarts``. Each subset costs about
-    ``(SUBSET / n)^3`` of a full evaluation per evaluation."""
+) -> tuple[list[np.ndarray] | None, int]:
+    """Starts for a large stage from the optima of the same search on subsets of ``SUBSET``
+    readings: one spread evenly over the range (it sees the long length scales) and windows
+    of neighbouring readings tiling the range (each sees the short ones where it lies, down
+    to the spacing there). The subsets' optima are ranked by the full objective's value at
+    them; the best, at least :data:`_DIVERSE` apart, at most ``n_restarts``, start the
+    runs, and the number of optima ranked (one value each on all readings). None where no
+    subset gives one (then the caller screens)."""
     n = obj.n
     order = np.argsort(obj.x, kind="stable")
-    spread = order[np.round(np.linspace(0.0, n - 1.0, SUBSET)).astype(np.intp)]
-    middle = order[(n - SUBSET) // 2 : (n - SUBSET) // 2 + SUBSET]
-    found = []
-    for idx in (spread, middle):
+    subsets = [order[np.round(np.linspace(0.0, n - 1.0, SUBSET)).astype(np.intp)]]
+    firsts = np.round(np.linspace(0.0, n - SUBSET, math.ceil(n / SUBSET))).astype(np.intp)
+    subsets += [order[a : a + SUBSET] for a in firsts.tolist()]
+    found: list[np.ndarray] = []
+    for idx in subsets:
         known = None if obj.known is None else _restrict(obj.known, idx, n)
         sub = Objective(obj.x[idx], obj.r[idx], obj.kernel, known, obj.learn_noise, obj.profile)
-        runs = sorted(_search(sub, b, n_restarts, seed, tabulate).starts, key=lambda s: -s.value)
-        found.append([s.theta for s in runs if s.value >= runs[0].value - surrogate.MARGIN])
+        try:  # e.g. readings equal to the prior mean throughout the subset: no optimum
+            runs = _search(sub, b, n_restarts, seed, tabulate).starts
+        except NumericalError:
+            continue
+        for s in runs:
+            if np.isfinite(s.value) and all(np.max(np.abs(s.theta - t)) > _DISTINCT for t in found):
+                found.append(s.theta)
+    values = np.array([_safe(obj.value, t) for t in found])
     starts: list[np.ndarray] = []
-    for pair in itertools.zip_longest(*found):
-        for t in pair:
-            if t is not None and all(np.max(np.abs(t - s)) > _DISTINCT for s in starts):
-                starts.append(t)
-    return starts[:n_restarts]
+    for i in np.argsort(-values, kind="stable").tolist():
+        if len(starts) == n_restarts or not np.isfinite(values[i]):
+            break
+        if all(np.max(np.abs(found[i] - t)) > _DIVERSE for t in starts):
+            starts.append(found[i])
+    return starts or None, len(found)
 
 
 def _restrict(noise: Noise, idx: np.ndarray, n: int) -> Noise:

@@ -495,7 +495,9 @@ def _canonical(obj: Any, texts: dict[int, str]) -> str:
     text = texts.get(id(obj)) if isinstance(obj, list) else None
     if text is not None:  # numbers contain no ", ": only the separators change
         return text.replace(", ", ",")
-    return json.dumps(obj, separators=(",", ":"), ensure_ascii=True, allow_nan=False)
+    return json.dumps(
+        obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False
+    )
 
 
 def _number_texts(obj: Any, out: dict[int, str]) -> dict[int, str]:
