@@ -50,8 +50,10 @@ NOISE_FLOOR_DROP = 1e3
 SUBSET = surrogate.MAX_POINTS
 #: Subset optima closer than this (log units, every parameter) are one candidate.
 _DISTINCT = 0.05
-#: Runs of a large stage start at least this far apart (log units, some parameter).
-_DIVERSE = 0.5
+#: Runs of a large stage start this far apart at least (log units): in length scale (the
+#: first parameter), or in another parameter. Closer optima of different subsets are one
+#: basin on all readings (their runs ended at the same optimum in bench_large).
+_DIVERSE = (0.5, 3.0)
 
 #: Set by :func:`pin_blas`: BLAS stays single-threaded, so the context has nothing to do.
 _PINNED: list[bool] = []
@@ -446,7 +448,7 @@ def _subset_starts(
     readings: one spread evenly over the range (it sees the long length scales) and windows
     of neighbouring readings tiling the range (each sees the short ones where it lies, down
     to the spacing there). The subsets' optima are ranked by the full objective's value at
-    them; the best, at least :data:`_DIVERSE` apart, at most ``n_restarts``, start the
+    them; the best, :data:`_DIVERSE` apart, at most ``n_restarts``, start the
     runs, and the number of optima ranked (one value each on all readings). None where no
     subset gives one (then the caller screens)."""
     n = obj.n
@@ -470,9 +472,14 @@ def _subset_starts(
     for i in np.argsort(-values, kind="stable").tolist():
         if len(starts) == n_restarts or not np.isfinite(values[i]):
             break
-        if all(np.max(np.abs(found[i] - t)) > _DIVERSE for t in starts):
+        if all(_apart(found[i], t) for t in starts):
             starts.append(found[i])
     return starts or None, len(found)
+
+
+def _apart(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two starts are :data:`_DIVERSE` apart."""
+    return abs(a[0] - b[0]) >= _DIVERSE[0] or bool(np.max(np.abs(a[1:] - b[1:])) >= _DIVERSE[1])
 
 
 def _restrict(noise: Noise, idx: np.ndarray, n: int) -> Noise:
