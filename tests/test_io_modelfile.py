@@ -135,6 +135,9 @@ def test_checksum_is_of_the_canonical_json(models):
     assert len(texts) > 10
     assert mf._checksum(doc, texts) == expected == mf._checksum(doc)
     assert json.loads(mf._pretty(doc, texts=texts)) == json.loads(canon)
+    mixed = {"z": [1.5, {"b": [2.0, 3.0], "a": "x, y"}, [4, 5]], "a": [[], {}, None, True]}
+    want = json.dumps(mixed, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    assert mf._canonical(mixed, mf._number_texts(mixed, {})) == want
 
 
 def test_truncated_file(saved):
