@@ -394,13 +394,15 @@ def _fit_gp(
     return _condition(xa, ya, kern, m, known, sn2, optimization)
 
 
-def _search(obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool) -> OptimResult:
+def _search(
+    obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool, fill: bool = True
+) -> OptimResult:
     """Maximise ``obj`` over the log bounds ``b`` (dim, 2): Newton runs from the best local
     maxima of a likelihood table where one applies (``tabulate``: no user bounds on the
     variances; with a dense known noise off the grid, the table without it and screened
     candidates, :func:`_white_starts`), else, for a stage of over ``2 * SUBSET`` points,
     from the optima of its subsets (:func:`_subset_starts`; their ranking's values count as
-    candidates), else from screened random candidates."""
+    candidates), else from screened random candidates. ``fill``: see :func:`_white_starts`."""
     starts = None
     known = obj.known
     if obj.profile:
@@ -411,7 +413,7 @@ def _search(obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool
         )
     ranked = 0
     if starts is None and known is not None and not known.is_diagonal:  # off the grid
-        starts, ranked = _white_starts(obj, b, n_restarts, seed, tabulate)
+        starts, ranked = _white_starts(obj, b, n_restarts, seed, tabulate, fill)
     if starts is None and obj.n > 2 * SUBSET:
         starts, ranked = _subset_starts(obj, b, n_restarts, seed, tabulate)
     found = maximize(
@@ -429,14 +431,15 @@ def _search(obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool
 
 
 def _white_starts(
-    obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool
+    obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool, fill: bool
 ) -> tuple[list[np.ndarray] | None, int]:
     """Starts ``[kernel theta, log noise_variance]`` for an objective with a known dense
     noise off the grid (learned noise, no user bounds on the variances), and the number of
     candidates screened: the local maxima of the profiled table without that noise, then,
     up to ``n_restarts``, the best of screened random candidates (a strong, correlated
     known noise can move the optimum away from every maximum of that table: 3.5 nats in a
-    review's case). None where no table applies."""
+    review's case); without ``fill`` (a large stage's subsets, whose optima are ranked on
+    all readings) the table's maxima alone. None where no table applies."""
     if not (isinstance(obj.kernel, _Scaled) and obj.learn_noise and tabulate):
         return None, 0
     white = Objective(obj.x, obj.r, obj.kernel, None, True, profile=True)
@@ -446,6 +449,8 @@ def _white_starts(
     if found is None:
         return None, 0
     starts = [white.full_theta(t) for t in found]
+    if not fill:
+        return starts, 0
     m = max(6 * n_restarts, 16)
     cands = latin_hypercube(b, m, np.random.default_rng(seed))
     scores = np.array([_safe(obj.value, c) for c in cands])
@@ -473,7 +478,7 @@ def _subset_starts(
         known = None if obj.known is None else _restrict(obj.known, idx, n)
         sub = Objective(obj.x[idx], obj.r[idx], obj.kernel, known, obj.learn_noise, obj.profile)
         try:  # e.g. readings equal to the prior mean throughout the subset: no optimum
-            runs = _search(sub, b, n_restarts, seed, tabulate).starts
+            runs = _search(sub, b, n_restarts, seed, tabulate, fill=False).starts
         except NumericalError:
             continue
         for s in runs:
