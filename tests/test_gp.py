@@ -719,6 +719,19 @@ def test_a_periodic_stage_over_several_turns_finds_the_short_harmonic():
     assert fit.kernel.length_scale < 1.0
 
 
+def test_a_periodic_stage_with_a_harmonic_finer_than_one_turns_readings():
+    """600 readings at random angles over 6 turns (100 a turn) with harmonic 60: only the
+    turns together resolve it, so the subsets' windows gather readings by phase (windows
+    of neighbouring angles, one turn each, ended over 1000 nats low in a review)."""
+    rng = np.random.default_rng(722)
+    a = np.sort(rng.uniform(0, 360 * 6, 600))
+    y = a + 0.01 * np.sin(np.deg2rad(a)) + 0.002 * np.sin(np.deg2rad(60 * a))
+    y = y + 2e-4 * rng.standard_normal(600)
+    fit = fit_gp(a, y, kernel="periodic", period=360.0)
+    obj = Objective(a, y - a, Periodic(period=360.0), None, True, profile=True)
+    assert fit.optimization.value >= _screened(obj).value - 1e-6
+
+
 def test_a_dense_noise_off_the_grid_keeps_the_given_length_scale_bounds():
     """250 readings with a stage-A posterior as the noise and length scales bounded to
     [0.02, 0.2]: the table without the noise keeps those bounds (it had searched the

@@ -469,7 +469,10 @@ def _subset_starts(
     runs, and the number of optima ranked (one value each on all readings). None where no
     subset gives one (then the caller screens)."""
     n = obj.n
-    order = np.argsort(obj.x, kind="stable")
+    # a periodic kernel's windows gather neighbours in phase (turns interleave there: a
+    # window of neighbouring angles holds one turn, too coarse for a high harmonic)
+    periodic = isinstance(obj.kernel, Periodic)
+    order = np.argsort(obj.x % obj.kernel.period if periodic else obj.x, kind="stable")  # type: ignore[attr-defined]
     subsets = [order[np.round(np.linspace(0.0, n - 1.0, SUBSET)).astype(np.intp)]]
     firsts = np.round(np.linspace(0.0, n - SUBSET, math.ceil(n / SUBSET))).astype(np.intp)
     subsets += [order[a : a + SUBSET] for a in firsts.tolist()]
