@@ -23,7 +23,7 @@ from .kernels import Kernel, Periodic, _Scaled, make_kernel
 from .likelihood import Objective
 from .means import Mean, make_mean
 from .noise import Dense, Diagonal, Noise, as_noise
-from .optimize import OptimResult, _diverse, _safe, latin_hypercube, maximize
+from .optimize import OptimResult, _safe, maximize
 from .validation import as_positions, check_count, check_pair, frozen
 
 __all__ = ["FittedGP", "Objective", "Posterior", "fit_gp", "log_marginal_likelihood"]
@@ -402,7 +402,8 @@ def _search(
     variances; with a dense known noise off the grid, the table without it and screened
     candidates, :func:`_white_starts`), else, for a stage of over ``2 * SUBSET`` points,
     from the optima of its subsets (:func:`_subset_starts`; their ranking's values count as
-    candidates), else from screened random candidates. ``fill``: see :func:`_white_starts`."""
+    candidates), else from screened random candidates. ``fill``: screen beside the table
+    without the known noise (see :func:`_white_starts`)."""
     starts = None
     known = obj.known
     if obj.profile:
@@ -411,9 +412,10 @@ def _search(
         starts = surrogate.dense_starts(
             obj.kernel, obj.x, obj.r, known.factor(obj.n), b, n_restarts
         )
-    ranked = 0
+    ranked, screen = 0, False
     if starts is None and known is not None and not known.is_diagonal:  # off the grid
-        starts, ranked = _white_starts(obj, b, n_restarts, seed, tabulate, fill)
+        starts = _white_starts(obj, b, n_restarts, tabulate)
+        screen = fill and starts is not None
     if starts is None and obj.n > 2 * SUBSET:
         starts, ranked = _subset_starts(obj, b, n_restarts, seed, tabulate)
     found = maximize(
@@ -421,41 +423,33 @@ def _search(
         obj.value_and_grad,
         b,
         n_restarts=n_restarts,
-        rng=None if starts else np.random.default_rng(seed),
+        rng=None if starts and not screen else np.random.default_rng(seed),
         value_grad_hess=obj.value_and_derivatives if obj.has_hessian else None,
         starts=starts,
         probes=_probes(obj.dim) if starts else None,
         names=obj.names,
+        fill=screen,
     )
     return replace(found, n_candidates=found.n_candidates + ranked) if ranked else found
 
 
 def _white_starts(
-    obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool, fill: bool
-) -> tuple[list[np.ndarray] | None, int]:
+    obj: Objective, b: np.ndarray, n_restarts: int, tabulate: bool
+) -> list[np.ndarray] | None:
     """Starts ``[kernel theta, log noise_variance]`` for an objective with a known dense
-    noise off the grid (learned noise, no user bounds on the variances), and the number of
-    candidates screened: the local maxima of the profiled table without that noise, then,
-    up to ``n_restarts``, the best of screened random candidates (a strong, correlated
-    known noise can move the optimum away from every maximum of that table: 3.5 nats in a
-    review's case); without ``fill`` (a large stage's subsets, whose optima are ranked on
-    all readings) the table's maxima alone. None where no table applies."""
+    noise off the grid (learned noise, no user bounds on the variances): the local maxima
+    of the profiled table without that noise, or None where no table applies. At the top
+    level :func:`_search` fills the remaining runs from screened candidates (a strong,
+    correlated known noise can move the optimum away from every maximum of that table:
+    3.5 nats in a review's case); a large stage's subsets, whose optima are ranked on all
+    readings, use the table's maxima alone."""
     if not (isinstance(obj.kernel, _Scaled) and obj.learn_noise and tabulate):
-        return None, 0
+        return None
     white = Objective(obj.x, obj.r, obj.kernel, None, True, profile=True)
     wb = white.bounds()
     wb[0] = b[0]  # the length scale's bounds as given
     found = surrogate.profiled_starts(obj.kernel, obj.x, obj.r, wb, n_restarts)
-    if found is None:
-        return None, 0
-    starts = [white.full_theta(t) for t in found]
-    if not fill:
-        return starts, 0
-    m = max(6 * n_restarts, 16)
-    cands = latin_hypercube(b, m, np.random.default_rng(seed))
-    scores = np.array([_safe(obj.value, c) for c in cands])
-    width = np.where(b[:, 1] > b[:, 0], b[:, 1] - b[:, 0], 1.0)
-    return starts + _diverse(cands, scores, (cands - b[:, 0]) / width, n_restarts - len(starts)), m
+    return None if found is None else [white.full_theta(t) for t in found]
 
 
 def _subset_starts(

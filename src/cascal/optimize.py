@@ -253,6 +253,7 @@ def maximize(
     starts: list[np.ndarray] | None = None,
     probes: list[np.ndarray] | None = None,
     names: tuple[str, ...] = (),
+    fill: bool = False,
 ) -> OptimResult:
     """Maximise ``value`` over the box ``bounds`` from several seeded starts.
 
@@ -268,6 +269,8 @@ def maximize(
             function giving the other two (see :func:`newton_maximize`): enables Newton.
         starts: Start points (p,) to use instead of screened candidates (none screened);
             an empty list or None screens as usual.
+        fill: With ``starts``, also screen candidates and run from the best of them up
+            to ``n_restarts`` runs in all (``rng`` needed).
         probes: Offsets (p,) from the best Newton optimum (Newton only): where the
             objective is higher there, another Newton run starts there (a nearby maximum
             that approximate starts merged with the one found). One value each.
@@ -285,15 +288,13 @@ def maximize(
     def inside(t) -> np.ndarray:
         return np.minimum(np.maximum(np.asarray(t, dtype=float), lo), hi)  # np.clip, faster
 
-    first = [] if initial is None else [inside(initial)]
-    if starts:
-        m = 0
-        picks = first + [inside(t) for t in starts]
-    else:
+    picks = ([] if initial is None else [inside(initial)]) + [inside(t) for t in starts or ()]
+    m = 0
+    if not starts or fill:
         m = n_candidates if n_candidates is not None else max(6 * n_restarts, 16)
         cands = latin_hypercube(bounds, m, rng)
         scores = np.array([_safe(value, c) for c in cands])
-        picks = first + _diverse(cands, scores, (cands - lo) / width, n_restarts - len(first))
+        picks += _diverse(cands, scores, (cands - lo) / width, n_restarts - len(picks))
     if not picks:
         raise NumericalError(
             "the log marginal likelihood could not be evaluated at any candidate "
