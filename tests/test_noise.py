@@ -78,6 +78,22 @@ def test_dense_symmetrises(C):
     assert_allclose(d.cov, 0.5 * (A + A.T), rtol=1e-15)
 
 
+def test_a_repaired_dense_defers_its_factor_to_the_first_use(rng):
+    """Dense.repaired (a model file's noise) keeps the matrix bit for bit and gives the
+    factor Dense computes, from an eigendecomposition made on first use only."""
+    B = rng.normal(size=(12, 3))
+    d = Dense(B @ B.T - 1e-15 * np.eye(12))  # clipped round-off, as a posterior has
+    back = Dense.repaired(d.cov, d.tol, d.atol)
+    assert back._factor is None and back.n_clipped == 0
+    assert np.array_equal(back.dense(12), d.cov)
+    U0, U1 = d.factor(12), back.factor(12)
+    assert U1.shape == U0.shape
+    assert_allclose(U1 @ U1.T, U0 @ U0.T, rtol=0, atol=1e-14 * np.abs(d.cov).max())
+    for bad in (np.ones((2, 3)), np.array([[1.0, np.inf], [np.inf, 1.0]])):
+        with pytest.raises(InputError, match="finite square"):
+            Dense.repaired(bad)
+
+
 def test_dense_clips_round_off_negative_eigenvalues(rng):
     n, rank = 12, 3
     B = rng.normal(size=(n, rank))

@@ -23,7 +23,7 @@ from .kernels import Kernel, Periodic, _Scaled, make_kernel
 from .likelihood import Objective
 from .means import Mean, make_mean
 from .noise import Dense, Diagonal, Noise, as_noise
-from .optimize import OptimResult, _safe, maximize
+from .optimize import OptimResult, _safe, maximize, newton_maximize
 from .validation import as_positions, check_count, check_pair, frozen
 
 __all__ = ["FittedGP", "Objective", "Posterior", "fit_gp", "log_marginal_likelihood"]
@@ -402,8 +402,9 @@ def _search(
     variances; with a dense known noise off the grid, the table without it and screened
     candidates, :func:`_white_starts`), else, for a stage of over ``2 * SUBSET`` points,
     from the optima of its subsets (:func:`_subset_starts`; their ranking's values count as
-    candidates), else from screened random candidates. ``fill``: screen beside the table
-    without the known noise (see :func:`_white_starts`)."""
+    candidates), else from screened random candidates. With a dense known noise off the
+    grid, one more run (:func:`_noise_in_kernel`; for a large stage on its subsets).
+    ``fill``: screen beside the table without the known noise (see :func:`_white_starts`)."""
     starts = None
     known = obj.known
     if obj.profile:
@@ -413,7 +414,8 @@ def _search(
             obj.kernel, obj.x, obj.r, known.factor(obj.n), b, n_restarts
         )
     ranked, screen = 0, False
-    if starts is None and known is not None and not known.is_diagonal:  # off the grid
+    off_grid = starts is None and known is not None and not known.is_diagonal
+    if off_grid:
         starts = _white_starts(obj, b, n_restarts, tabulate)
         screen = fill and starts is not None
     if starts is None and obj.n > 2 * SUBSET:
@@ -430,7 +432,36 @@ def _search(
         names=obj.names,
         fill=screen,
     )
+    if off_grid and not ranked:  # (a large stage's subsets made this run already)
+        found = _noise_in_kernel(obj, b, found)
     return replace(found, n_candidates=found.n_candidates + ranked) if ranked else found
+
+
+def _noise_in_kernel(obj: Objective, b: np.ndarray, found: OptimResult) -> OptimResult:
+    """``found``, or the optimum of one more Newton run where it is higher: from a length
+    scale e^-1 of the median spacing, the variance at the learned noise's level and that
+    noise 10 log units lower (without learned noise, ``found``'s variance). With a strong,
+    correlated known noise off the grid an optimum can read the white noise as a kernel
+    too short to correlate neighbours; neither table nor screening starts there (0.02 to
+    0.36 nats missed in a review's cases of 250 to 700 readings)."""
+    kern = obj.kernel
+    if not (isinstance(kern, _Scaled) and not isinstance(kern, Periodic) and obj.has_hessian):
+        return found
+    gaps = np.diff(np.sort(obj.x))
+    gaps = gaps[gaps > 0]
+    if not gaps.size:
+        return found
+    t0 = np.array(found.theta, dtype=float)
+    t0[0] = np.log(np.median(gaps)) - 1.0
+    if obj.learn_noise:
+        t0[1:] = found.theta[2], found.theta[2] - 10.0
+    t0 = np.minimum(np.maximum(t0, b[:, 0]), b[:, 1])
+    run = newton_maximize(obj.value_and_derivatives, t0, b, known=list(found.starts))
+    starts = (*found.starts, run)
+    if run.value > found.value:
+        return replace(found, theta=run.theta, value=run.value, starts=starts)
+    obj.value_and_derivatives(found.theta)  # the latest evaluation again: its factor is kept
+    return replace(found, starts=starts)
 
 
 def _white_starts(

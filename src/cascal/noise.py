@@ -156,6 +156,22 @@ class Dense(Noise):
         object.__setattr__(out, "_factor", _low_rank(w, U @ V, scaled=True))
         return out
 
+    @classmethod
+    def repaired(cls, cov: np.ndarray, tol: float = 1e-8, atol: float = 0.0) -> Dense:
+        """A covariance a Dense held already (read back from a checksummed model file, or
+        a principal block of one): symmetric and repaired, so it is taken as it is (finite
+        entries checked) and its eigendecomposition waits for the first :meth:`factor`
+        (0.75 s at 2000 readings, which predicting never needs)."""
+        C = np.array(cov, dtype=float)
+        if C.ndim != 2 or C.shape[0] != C.shape[1] or not np.all(np.isfinite(C)):
+            raise InputError(f"dense noise: expected a finite square matrix, got shape {C.shape}")
+        out = object.__new__(cls)
+        for name, v in (("cov", C), ("tol", tol), ("atol", atol), ("n_clipped", 0)):
+            object.__setattr__(out, name, v)
+        object.__setattr__(out, "min_eigenvalue", 0.0)
+        object.__setattr__(out, "_factor", None)
+        return out
+
     def _check(self, n: int) -> None:
         if self.cov.shape != (n, n):
             raise InputError(f"dense noise: expected shape ({n}, {n}), got {self.cov.shape}")
@@ -166,6 +182,9 @@ class Dense(Noise):
 
     def factor(self, n: int) -> np.ndarray:
         self._check(n)
+        if self._factor is None:  # (see :meth:`repaired`)
+            w, V = np.linalg.eigh(self.cov)
+            object.__setattr__(self, "_factor", _low_rank(np.clip(w, 0.0, None), V))
         return self._factor
 
     def dense(self, n: int) -> np.ndarray:

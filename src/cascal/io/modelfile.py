@@ -431,8 +431,7 @@ def _noise_from(d: dict) -> Noise:
     for i, r in enumerate(rows):
         C[i, : i + 1] = r
     C = C + np.tril(C, -1).T
-    fields = getattr(Dense, "__dataclass_fields__", {})
-    return Dense(C, **{k: d[k] for k in ("tol", "atol") if k in fields})
+    return Dense.repaired(C, **{k: d[k] for k in ("tol", "atol") if k in d})  # (checksummed)
 
 
 def _opt_dict(opt: OptimResult) -> dict[str, Any]:
