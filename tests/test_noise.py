@@ -92,6 +92,9 @@ def test_a_repaired_dense_defers_its_factor_to_the_first_use(rng):
     for bad in (np.ones((2, 3)), np.array([[1.0, np.inf], [np.inf, 1.0]])):
         with pytest.raises(InputError, match="finite square"):
             Dense.repaired(bad)
+    for bad in ([[-1.0, 0.0], [0.0, 1.0]], [[1.0, 1.1], [1.1, 1.0]]):  # checked in O(n^2)
+        with pytest.raises(InputError, match="not a covariance"):
+            Dense.repaired(np.array(bad))
 
 
 def test_dense_clips_round_off_negative_eigenvalues(rng):

@@ -402,9 +402,10 @@ def _search(
     variances; with a dense known noise off the grid, the table without it and screened
     candidates, :func:`_white_starts`), else, for a stage of over ``2 * SUBSET`` points,
     from the optima of its subsets (:func:`_subset_starts`; their ranking's values count as
-    candidates), else from screened random candidates. With a dense known noise off the
-    grid, one more run (:func:`_noise_in_kernel`; for a large stage on its subsets).
-    ``fill``: screen beside the table without the known noise (see :func:`_white_starts`)."""
+    candidates), else from screened random candidates. ``fill`` (the top level, not a
+    subset): screen beside the table without the known noise and, with a dense known noise
+    off the grid, run once more from a short length scale (:func:`_short_start`; for a
+    large stage, its windows' runs from there add starts)."""
     starts = None
     known = obj.known
     if obj.profile:
@@ -432,30 +433,38 @@ def _search(
         names=obj.names,
         fill=screen,
     )
-    if off_grid and not ranked:  # (a large stage's subsets made this run already)
-        found = _noise_in_kernel(obj, b, found)
+    if off_grid and fill and not ranked:  # (a large stage's windows made such runs)
+        t0 = _short_start(obj, b, found.theta)
+        if t0 is not None:
+            found = _extra_run(obj, b, found, t0)
     return replace(found, n_candidates=found.n_candidates + ranked) if ranked else found
 
 
-def _noise_in_kernel(obj: Objective, b: np.ndarray, found: OptimResult) -> OptimResult:
-    """``found``, or the optimum of one more Newton run where it is higher: from a length
-    scale e^-1 of the median spacing, the variance at the learned noise's level and that
-    noise 10 log units lower (without learned noise, ``found``'s variance). With a strong,
-    correlated known noise off the grid an optimum can read the white noise as a kernel
-    too short to correlate neighbours; neither table nor screening starts there (0.02 to
-    0.36 nats missed in a review's cases of 250 to 700 readings)."""
+def _short_start(obj: Objective, b: np.ndarray, theta: np.ndarray) -> np.ndarray | None:
+    """With a strong, correlated known noise off the grid, an optimum can read the white
+    noise as a kernel too short to correlate neighbours, where neither table nor screening
+    starts (0.02 to 0.36 nats missed in a review's cases of 250 to 700 readings, 17.6 in a
+    generated one). A start there: the length scale e^-1 of the median spacing, the
+    variance at the learned noise of ``theta`` (an optimum) and that noise 10 log units
+    lower (without learned noise, ``theta``'s variance), inside ``b``. None for kernels
+    other than the stationary scaled ones (periodic excluded) or a single position."""
     kern = obj.kernel
     if not (isinstance(kern, _Scaled) and not isinstance(kern, Periodic) and obj.has_hessian):
-        return found
+        return None
     gaps = np.diff(np.sort(obj.x))
     gaps = gaps[gaps > 0]
     if not gaps.size:
-        return found
-    t0 = np.array(found.theta, dtype=float)
+        return None
+    t0 = np.array(theta, dtype=float)
     t0[0] = np.log(np.median(gaps)) - 1.0
     if obj.learn_noise:
-        t0[1:] = found.theta[2], found.theta[2] - 10.0
-    t0 = np.minimum(np.maximum(t0, b[:, 0]), b[:, 1])
+        t0[1:] = theta[2], theta[2] - 10.0
+    return np.minimum(np.maximum(t0, b[:, 0]), b[:, 1])
+
+
+def _extra_run(obj: Objective, b: np.ndarray, found: OptimResult, t0: np.ndarray) -> OptimResult:
+    """``found`` with one more Newton run from ``t0``, whose optimum replaces ``found``'s
+    where it is higher (never lower: the search before it is kept as it was)."""
     run = newton_maximize(obj.value_and_derivatives, t0, b, known=list(found.starts))
     starts = (*found.starts, run)
     if run.value > found.value:
@@ -491,8 +500,10 @@ def _subset_starts(
     of neighbouring readings tiling the range (each sees the short ones where it lies, down
     to the spacing there). The subsets' optima are ranked by the full objective's value at
     them; the best, :data:`_DIVERSE` apart, at most ``n_restarts``, start the
-    runs, and the number of optima ranked (one value each on all readings). None where no
-    subset gives one (then the caller screens)."""
+    runs. With a dense known noise, the optima of the windows' runs from
+    :func:`_short_start` fill the remaining runs up to ``n_restarts`` (at least one more),
+    ranked alike. Also the number of values on all readings (the rankings'). No starts
+    where no subset gives one (then the caller screens)."""
     n = obj.n
     # a periodic kernel's windows gather neighbours in phase (turns interleave there: a
     # window of neighbouring angles holds one turn, too coarse for a high harmonic)
@@ -501,25 +512,39 @@ def _subset_starts(
     subsets = [order[np.round(np.linspace(0.0, n - 1.0, SUBSET)).astype(np.intp)]]
     firsts = np.round(np.linspace(0.0, n - SUBSET, math.ceil(n / SUBSET))).astype(np.intp)
     subsets += [order[a : a + SUBSET] for a in firsts.tolist()]
+    dense = obj.known is not None and not obj.known.is_diagonal
     found: list[np.ndarray] = []
-    for idx in subsets:
+    shorts: list[np.ndarray] = []
+    for k, idx in enumerate(subsets):
         known = None if obj.known is None else _restrict(obj.known, idx, n)
         sub = Objective(obj.x[idx], obj.r[idx], obj.kernel, known, obj.learn_noise, obj.profile)
         try:  # e.g. readings equal to the prior mean throughout the subset: no optimum
-            runs = _search(sub, b, n_restarts, seed, tabulate, fill=False).starts
+            best = _search(sub, b, n_restarts, seed, tabulate, fill=False)
         except NumericalError:
             continue
-        for s in runs:
+        for s in best.starts:
             if np.isfinite(s.value) and all(np.max(np.abs(s.theta - t)) > _DISTINCT for t in found):
                 found.append(s.theta)
-    values = np.array([_safe(obj.value, t) for t in found])
-    starts: list[np.ndarray] = []
+        t0 = _short_start(sub, b, best.theta) if dense and k > 0 else None  # (the windows)
+        run = None if t0 is None else newton_maximize(sub.value_and_derivatives, t0, b)
+        if run is not None and np.isfinite(run.value) and all(_apart(run.theta, t) for t in shorts):
+            shorts.append(run.theta)
+    starts = _ranked(obj, found, n_restarts)
+    shorts = [t for t in shorts if all(_apart(t, u) for u in starts)]
+    starts += _ranked(obj, shorts, max(n_restarts - len(starts), 1))
+    return starts or None, len(found) + len(shorts)
+
+
+def _ranked(obj: Objective, thetas: list[np.ndarray], m: int) -> list[np.ndarray]:
+    """The best of ``thetas`` by ``obj``'s value, :data:`_DIVERSE` apart, at most m."""
+    values = np.array([_safe(obj.value, t) for t in thetas])
+    out: list[np.ndarray] = []
     for i in np.argsort(-values, kind="stable").tolist():
-        if len(starts) == n_restarts or not np.isfinite(values[i]):
+        if len(out) == m or not np.isfinite(values[i]):
             break
-        if all(_apart(found[i], t) for t in starts):
-            starts.append(found[i])
-    return starts or None, len(found)
+        if all(_apart(thetas[i], t) for t in out):
+            out.append(thetas[i])
+    return out
 
 
 def _apart(a: np.ndarray, b: np.ndarray) -> bool:

@@ -158,13 +158,20 @@ class Dense(Noise):
 
     @classmethod
     def repaired(cls, cov: np.ndarray, tol: float = 1e-8, atol: float = 0.0) -> Dense:
-        """A covariance a Dense held already (read back from a checksummed model file, or
-        a principal block of one): symmetric and repaired, so it is taken as it is (finite
-        entries checked) and its eigendecomposition waits for the first :meth:`factor`
-        (0.75 s at 2000 readings, which predicting never needs)."""
+        """A covariance a Dense held already (read back from a checksummed model file):
+        symmetric and repaired, so it is taken as it is and its eigendecomposition waits for
+        the first :meth:`factor` (0.75 s at 2000 readings, which predicting never needs).
+        Checked in O(n^2) only: finite, square, no negative variance, and no covariance
+        above the geometric mean of its two variances (beyond 1e-8 of the largest)."""
         C = np.array(cov, dtype=float)
         if C.ndim != 2 or C.shape[0] != C.shape[1] or not np.all(np.isfinite(C)):
             raise InputError(f"dense noise: expected a finite square matrix, got shape {C.shape}")
+        v = np.diagonal(C)
+        if v.size and (v.min() < 0 or np.any(np.abs(C) > np.sqrt(np.outer(v, v)) + 1e-8 * v.max())):
+            raise InputError(
+                "dense noise: not a covariance (a negative variance, or a covariance larger "
+                "than its variances allow)"
+            )
         out = object.__new__(cls)
         for name, v in (("cov", C), ("tol", tol), ("atol", atol), ("n_clipped", 0)):
             object.__setattr__(out, name, v)
