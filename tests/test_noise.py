@@ -85,6 +85,7 @@ def test_a_repaired_dense_defers_its_factor_to_the_first_use(rng):
     d = Dense(B @ B.T - 1e-15 * np.eye(12))  # clipped round-off, as a posterior has
     back = Dense.repaired(d.cov, d.tol, d.atol)
     assert back._factor is None and back.n_clipped == 0
+    assert (back.tol, back.atol) == (d.tol, d.atol)
     assert np.array_equal(back.dense(12), d.cov)
     U0, U1 = d.factor(12), back.factor(12)
     assert U1.shape == U0.shape
@@ -92,6 +93,10 @@ def test_a_repaired_dense_defers_its_factor_to_the_first_use(rng):
     for bad in (np.ones((2, 3)), np.array([[1.0, np.inf], [np.inf, 1.0]])):
         with pytest.raises(InputError, match="finite square"):
             Dense.repaired(bad)
+    # a variance of round-off below zero (Dense keeps one where no eigenvalue is clipped:
+    # a row of a near-zero variance, as a review found in 32 of 3000 random matrices)
+    C = np.array([[1.0, 1e-18], [1e-18, -1e-19]])
+    assert np.array_equal(Dense.repaired(C).dense(2), C)
     for bad in ([[-1.0, 0.0], [0.0, 1.0]], [[1.0, 1.1], [1.1, 1.0]]):  # checked in O(n^2)
         with pytest.raises(InputError, match="not a covariance"):
             Dense.repaired(np.array(bad))

@@ -530,9 +530,11 @@ def _subset_starts(
         if run is not None and np.isfinite(run.value) and all(_apart(run.theta, t) for t in shorts):
             shorts.append(run.theta)
     starts = _ranked(obj, found, n_restarts)
+    if not starts:  # (the caller screens; the short runs' optima are no starts alone)
+        return None, len(found)
     shorts = [t for t in shorts if all(_apart(t, u) for u in starts)]
     starts += _ranked(obj, shorts, max(n_restarts - len(starts), 1))
-    return starts or None, len(found) + len(shorts)
+    return starts, len(found) + len(shorts)
 
 
 def _ranked(obj: Objective, thetas: list[np.ndarray], m: int) -> list[np.ndarray]:

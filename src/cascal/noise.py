@@ -161,13 +161,17 @@ class Dense(Noise):
         """A covariance a Dense held already (read back from a checksummed model file):
         symmetric and repaired, so it is taken as it is and its eigendecomposition waits for
         the first :meth:`factor` (0.75 s at 2000 readings, which predicting never needs).
-        Checked in O(n^2) only: finite, square, no negative variance, and no covariance
-        above the geometric mean of its two variances (beyond 1e-8 of the largest)."""
+        Checked in O(n^2) only: finite, square, no negative variance and no covariance
+        above the geometric mean of its two variances, beyond round-off of 1e-8 of the
+        largest variance (a Dense keeps a diagonal's round-off below zero where no
+        eigenvalue needs clipping)."""
         C = np.array(cov, dtype=float)
         if C.ndim != 2 or C.shape[0] != C.shape[1] or not np.all(np.isfinite(C)):
             raise InputError(f"dense noise: expected a finite square matrix, got shape {C.shape}")
         v = np.diagonal(C)
-        if v.size and (v.min() < 0 or np.any(np.abs(C) > np.sqrt(np.outer(v, v)) + 1e-8 * v.max())):
+        eps = 1e-8 * float(v.max()) if v.size else 0.0
+        root = np.sqrt(np.clip(v, 0.0, None))
+        if v.size and (v.min() < -eps or np.any(np.abs(C) > np.outer(root, root) + eps)):
             raise InputError(
                 "dense noise: not a covariance (a negative variance, or a covariance larger "
                 "than its variances allow)"
