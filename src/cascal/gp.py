@@ -405,7 +405,7 @@ def _search(
     candidates), else from screened random candidates. ``fill`` (the top level, not a
     subset): screen beside the table without the known noise and, with a dense known noise
     off the grid, run once more from a short length scale (:func:`_short_start`; for a
-    large stage, its windows' runs from there add starts)."""
+    large stage, from its windows' optima of such runs): :func:`_extra_runs`."""
     starts = None
     known = obj.known
     if obj.profile:
@@ -414,13 +414,13 @@ def _search(
         starts = surrogate.dense_starts(
             obj.kernel, obj.x, obj.r, known.factor(obj.n), b, n_restarts
         )
-    ranked, screen = 0, False
+    ranked, screen, extra = 0, False, []
     off_grid = starts is None and known is not None and not known.is_diagonal
     if off_grid:
         starts = _white_starts(obj, b, n_restarts, tabulate)
         screen = fill and starts is not None
     if starts is None and obj.n > 2 * SUBSET:
-        starts, ranked = _subset_starts(obj, b, n_restarts, seed, tabulate)
+        starts, ranked, extra = _subset_starts(obj, b, n_restarts, seed, tabulate)
     found = maximize(
         obj.value,
         obj.value_and_grad,
@@ -435,8 +435,9 @@ def _search(
     )
     if off_grid and fill and not ranked:  # (a large stage's windows made such runs)
         t0 = _short_start(obj, b, found.theta)
-        if t0 is not None:
-            found = _extra_run(obj, b, found, t0)
+        extra = [] if t0 is None else [t0]
+    if extra:
+        found = _extra_runs(obj, b, found, extra)
     return replace(found, n_candidates=found.n_candidates + ranked) if ranked else found
 
 
@@ -462,15 +463,30 @@ def _short_start(obj: Objective, b: np.ndarray, theta: np.ndarray) -> np.ndarray
     return np.minimum(np.maximum(t0, b[:, 0]), b[:, 1])
 
 
-def _extra_run(obj: Objective, b: np.ndarray, found: OptimResult, t0: np.ndarray) -> OptimResult:
-    """``found`` with one more Newton run from ``t0``, whose optimum replaces ``found``'s
-    where it is higher (never lower: the search before it is kept as it was)."""
-    run = newton_maximize(obj.value_and_derivatives, t0, b, known=list(found.starts))
-    starts = (*found.starts, run)
-    if run.value > found.value:
-        return replace(found, theta=run.theta, value=run.value, starts=starts)
+def _extra_runs(
+    obj: Objective, b: np.ndarray, found: OptimResult, t0s: list[np.ndarray]
+) -> OptimResult:
+    """``found`` with one more Newton run from each of ``t0s``; the best optimum replaces
+    ``found``'s where it is higher (never lower: the search before them is kept as it
+    was, its probes included), and is probed as :func:`maximize` probes (one value
+    each)."""
+    best, runs, probed = None, list(t0s), False  # best: the best run above found's value
+    while runs:
+        run = newton_maximize(obj.value_and_derivatives, runs.pop(0), b, known=list(found.starts))
+        found = replace(found, starts=(*found.starts, run))
+        if run.value > (found.value if best is None else best.value):
+            best = run
+        if not runs and best is not None and not probed:  # probe the new best, once
+            probed = True
+            for t in (best.theta + o for o in _probes(obj.dim)):
+                t = np.minimum(np.maximum(t, b[:, 0]), b[:, 1])
+                found = replace(found, n_probes=found.n_probes + 1)
+                if _safe(obj.value, t) > best.value:
+                    runs.append(t)
+    if best is not None:
+        return replace(found, theta=best.theta, value=best.value)
     obj.value_and_derivatives(found.theta)  # the latest evaluation again: its factor is kept
-    return replace(found, starts=starts)
+    return found
 
 
 def _white_starts(
@@ -494,16 +510,17 @@ def _white_starts(
 
 def _subset_starts(
     obj: Objective, b: np.ndarray, n_restarts: int, seed, tabulate: bool
-) -> tuple[list[np.ndarray] | None, int]:
+) -> tuple[list[np.ndarray] | None, int, list[np.ndarray]]:
     """Starts for a large stage from the optima of the same search on subsets of ``SUBSET``
     readings: one spread evenly over the range (it sees the long length scales) and windows
     of neighbouring readings tiling the range (each sees the short ones where it lies, down
     to the spacing there). The subsets' optima are ranked by the full objective's value at
     them; the best, :data:`_DIVERSE` apart, at most ``n_restarts``, start the
-    runs. With a dense known noise, the optima of the windows' runs from
-    :func:`_short_start` fill the remaining runs up to ``n_restarts`` (at least one more),
-    ranked alike. Also the number of values on all readings (the rankings'). No starts
-    where no subset gives one (then the caller screens)."""
+    runs (None where no subset gives one: then the caller screens). Also the number of
+    values on all readings (the rankings'), and with a dense known noise the starts of
+    extra runs after the search: the optima of the windows' runs from
+    :func:`_short_start`, ranked alike, as many as the runs left up to ``n_restarts`` (at
+    least one)."""
     n = obj.n
     # a periodic kernel's windows gather neighbours in phase (turns interleave there: a
     # window of neighbouring angles holds one turn, too coarse for a high harmonic)
@@ -531,10 +548,9 @@ def _subset_starts(
             shorts.append(run.theta)
     starts = _ranked(obj, found, n_restarts)
     if not starts:  # (the caller screens; the short runs' optima are no starts alone)
-        return None, len(found)
+        return None, len(found), []
     shorts = [t for t in shorts if all(_apart(t, u) for u in starts)]
-    starts += _ranked(obj, shorts, max(n_restarts - len(starts), 1))
-    return starts, len(found) + len(shorts)
+    return starts, len(found) + len(shorts), _ranked(obj, shorts, max(n_restarts - len(starts), 1))
 
 
 def _ranked(obj: Objective, thetas: list[np.ndarray], m: int) -> list[np.ndarray]:
