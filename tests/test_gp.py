@@ -774,7 +774,7 @@ def test_a_strong_correlated_noise_off_the_grid_can_hold_the_white_noise_in_the_
 
 def test_a_large_dense_stage_adds_its_windows_short_optima_as_starts(monkeypatch):
     """560 readings with a smooth known noise: the windows' runs from a short length scale
-    add starts after the subsets' own (filling free runs, at least one). With the default
+    start extra runs after the search (filling free runs, at least one). With the default
     five runs one of them ends 0.31 higher than the search without them; with one run the
     fit is never lower than without them (a review's case had ended 0.076 lower when they
     competed for the runs)."""
