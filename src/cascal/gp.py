@@ -450,7 +450,7 @@ def _short_start(obj: Objective, b: np.ndarray, theta: np.ndarray) -> np.ndarray
     lower (without learned noise, ``theta``'s variance), inside ``b``. None for kernels
     other than the stationary scaled ones (periodic excluded) or a single position."""
     kern = obj.kernel
-    if not (isinstance(kern, _Scaled) and not isinstance(kern, Periodic) and obj.has_hessian):
+    if not isinstance(kern, _Scaled) or isinstance(kern, Periodic):
         return None
     gaps = np.diff(np.sort(obj.x))
     gaps = gaps[gaps > 0]
@@ -466,25 +466,29 @@ def _short_start(obj: Objective, b: np.ndarray, theta: np.ndarray) -> np.ndarray
 def _extra_runs(
     obj: Objective, b: np.ndarray, found: OptimResult, t0s: list[np.ndarray]
 ) -> OptimResult:
-    """``found`` with one more Newton run from each of ``t0s``; the best optimum replaces
-    ``found``'s where it is higher (never lower: the search before them is kept as it
-    was, its probes included), and is probed as :func:`maximize` probes (one value
-    each)."""
-    best, runs, probed = None, list(t0s), False  # best: the best run above found's value
-    while runs:
-        run = newton_maximize(obj.value_and_derivatives, runs.pop(0), b, known=list(found.starts))
-        found = replace(found, starts=(*found.starts, run))
-        if run.value > (found.value if best is None else best.value):
-            best = run
-        if not runs and best is not None and not probed:  # probe the new best, once
-            probed = True
-            for t in (best.theta + o for o in _probes(obj.dim)):
-                t = np.minimum(np.maximum(t, b[:, 0]), b[:, 1])
-                found = replace(found, n_probes=found.n_probes + 1)
-                if _safe(obj.value, t) > best.value:
-                    runs.append(t)
-    if best is not None:
-        return replace(found, theta=best.theta, value=best.value)
+    """``found`` with Newton runs from ``t0s`` and probes about their best (a second
+    :func:`maximize`, stopping at ``found``'s optima); that best replaces ``found``'s where
+    it is higher (never lower: the search before is kept as it was, its probes included)."""
+    try:
+        more = maximize(
+            obj.value,
+            obj.value_and_grad,
+            b,
+            n_restarts=len(t0s),
+            rng=None,
+            value_grad_hess=obj.value_and_derivatives,
+            starts=t0s,
+            probes=_probes(obj.dim),
+            known=found.starts,
+        )
+    except NumericalError:  # no run reached a finite value
+        more = None
+    if more is not None:
+        found = replace(
+            found, starts=found.starts + more.starts, n_probes=found.n_probes + more.n_probes
+        )
+        if more.value > found.value:
+            return replace(found, theta=more.theta, value=more.value)
     obj.value_and_derivatives(found.theta)  # the latest evaluation again: its factor is kept
     return found
 

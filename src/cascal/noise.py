@@ -177,10 +177,9 @@ class Dense(Noise):
                 "than its variances allow)"
             )
         out = object.__new__(cls)
-        for name, v in (("cov", C), ("tol", tol), ("atol", atol), ("n_clipped", 0)):
-            object.__setattr__(out, name, v)
-        object.__setattr__(out, "min_eigenvalue", 0.0)
-        object.__setattr__(out, "_factor", None)
+        fields = {"cov": C, "tol": tol, "atol": atol, "n_clipped": 0, "min_eigenvalue": 0.0}
+        for name, value in (*fields.items(), ("_factor", None)):
+            object.__setattr__(out, name, value)
         return out
 
     def _check(self, n: int) -> None:

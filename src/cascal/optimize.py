@@ -254,6 +254,7 @@ def maximize(
     probes: list[np.ndarray] | None = None,
     names: tuple[str, ...] = (),
     fill: bool = False,
+    known: tuple[Start, ...] = (),
 ) -> OptimResult:
     """Maximise ``value`` over the box ``bounds`` from several seeded starts.
 
@@ -275,6 +276,8 @@ def maximize(
             objective is higher there, another Newton run starts there (a nearby maximum
             that approximate starts merged with the one found). One value each.
         names: Names of the parameters, kept in the result (:meth:`OptimResult.at_bounds`).
+        known: Optima of runs made before (Newton only): a run that reaches one stops
+            there (see :func:`newton_maximize`); they are not part of the result.
 
     Returns:
         The best optimum and one :class:`Start` per run.
@@ -314,12 +317,12 @@ def maximize(
     if value_grad_hess is not None:
         starts: list[Start] = []
         for t0 in picks:
-            starts.append(newton_maximize(value_grad_hess, t0, bounds, known=starts))
+            starts.append(newton_maximize(value_grad_hess, t0, bounds, known=[*known, *starts]))
         best = _best(starts)
         for offset in probes or ():
             t0 = inside(best.theta + offset)
             if _safe(value, t0) > best.value:
-                starts.append(newton_maximize(value_grad_hess, t0, bounds, known=starts))
+                starts.append(newton_maximize(value_grad_hess, t0, bounds, known=[*known, *starts]))
                 best = _best(starts)
         return OptimResult(
             best.theta, best.value, tuple(starts), m, len(probes or ()), bounds, names
