@@ -633,6 +633,29 @@ def test_a_noise_below_the_first_floor_is_found():
     assert fit.log_marginal_likelihood == pytest.approx(dense_lml(r, K), abs=0.05)
 
 
+def test_a_noise_larger_than_the_error_is_learned_beyond_a_ratio_of_ten():
+    """100 readings with noise of 1e-3 on a smooth error of 3e-4 (a review's case): the
+    optimum has noise / variance = 32.5. With the profiled ratio capped at 10, the fit ended
+    0.039 lower, at a length scale 440 times below the spacing that read the noise as
+    signal (RMS error 2.9e-4 against the truth). It must reach the optimum of the search
+    without profiling (the variances' box given as bounds) and follow the error."""
+    rng = np.random.default_rng(2)
+    x = np.sort(rng.uniform(0.0, 1.0, 100))
+    error = 3e-4 * np.sin(2 * np.pi * x + 2)
+    y = x + error + rng.normal(0.0, 1e-3, 100)
+    fit = fit_gp(x, y, seed=2)
+    hp = fit.hyperparameters
+    assert 20 < hp["noise_variance"] / hp["variance"] < 50
+    assert 0.1 < hp["length_scale"] < 0.3
+    v = float(np.var(y - x))  # the box of the search without profiling, as given bounds
+    free = fit_gp(x, y, seed=2, bounds={"variance": (1e-6 * v, 1e4 * v)})
+    assert free.optimization.names == ("length_scale", "variance", "noise_variance")
+    assert fit.log_marginal_likelihood == pytest.approx(free.log_marginal_likelihood, abs=1e-6)
+    K = se(x, x, hp["length_scale"], hp["variance"]) + hp["noise_variance"] * np.eye(100)
+    assert fit.log_marginal_likelihood == pytest.approx(dense_lml(y - x, K), rel=1e-10)
+    assert np.sqrt(np.mean((fit.predict(x) - x - error) ** 2)) < 1.5e-4
+
+
 def test_a_noise_variance_that_would_be_ignored_is_refused(data):
     x, y = data
     hp = {"length_scale": L0, "variance": V0, "noise_variance": 1e-4}

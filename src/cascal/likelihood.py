@@ -22,6 +22,12 @@ from .noise import Noise
 __all__ = ["Objective"]
 
 _LOG2PI = np.log(2.0 * np.pi)
+#: Upper bound of the noise ratio (noise variance / variance) where the variance is profiled:
+#: as in the box without profiling (noise up to 10, variance down to 1e-6 of the
+#: corrections' variance). Readings whose noise exceeds a smooth error of theirs have their
+#: optimum at ratios over 10 (32 in a review's case of 100 readings, where a cap at 10
+#: left a length scale below the spacing that fitted the noise as signal).
+RATIO_MAX = 1e7
 
 
 class Objective:
@@ -327,7 +333,7 @@ class Objective:
             rows[name] = (lo, hi)
         if self.profile:
             (l_lo, l_hi) = rows["length_scale"]
-            out = [(l_lo, l_hi), (1e-10, 10.0)]
+            out = [(l_lo, l_hi), (1e-10, RATIO_MAX)]
         else:
             out = [rows[name] for name in self.kernel.names]
             if self.learn_noise:

@@ -222,6 +222,10 @@ def screen_stages(
 #: Corrections whose mean is this many times their spread are one offset between the two
 #: sensors' zeros, not a calibration map (the stage-A data of the paper's 12 000 trials reach 93).
 OFFSET_RATIO = 1000.0
+#: A profiled fit whose noise exceeds its map's variance this many times (the map's
+#: amplitude below 1 % of the noise's) takes the readings for noise about the prior mean,
+#: as at the noise's upper bound: the likelihood is flat beyond, where the search stops.
+NOISE_ONLY_RATIO = 1e4
 
 
 @dataclass(frozen=True, slots=True)
@@ -267,9 +271,11 @@ def fit_findings(model: CalibrationModel, *, first: int = 0) -> list[BoundHit | 
     ended at a bound: a length scale at its lower bound (the map varies faster than the
     points show), a variance at either bound, the learned noise at its upper bound (the
     readings taken for noise) or, with no known noise, at its lower bound (the fit
-    interpolates; the noise is not estimated). A length scale at its upper bound (a
-    straight correction) and a learned noise at its lower bound on top of a known noise
-    are not listed. Bounds are not stored in model files: a loaded model shows offsets only.
+    interpolates; the noise is not estimated); a profiled noise over
+    :data:`NOISE_ONLY_RATIO` times the variance counts as at its upper bound. A length
+    scale at its upper bound (a straight correction) and a learned noise at its lower bound
+    on top of a known noise are not listed. Bounds are not stored in model files: a loaded
+    model shows offsets only.
     """
     out: list[BoundHit | StageOffset] = []
     for k in range(first, len(model.fitted.models)):
@@ -281,7 +287,15 @@ def fit_findings(model: CalibrationModel, *, first: int = 0) -> list[BoundHit | 
         if gp.mean.name == "identity" and abs(mean) > OFFSET_RATIO * spread:
             out.append(StageOffset(k, mean, spread))
             continue
-        for name, side in gp.optimization.at_bounds() if gp.optimization else ():
+        hits = gp.optimization.at_bounds() if gp.optimization else []
+        hp = gp.hyperparameters
+        if (
+            "noise_ratio" in (gp.optimization.names if gp.optimization else ())
+            and ("noise_ratio", "upper") not in hits
+            and hp["noise_variance"] >= NOISE_ONLY_RATIO * hp.get("variance", np.inf)
+        ):
+            hits.append(("noise_ratio", "upper"))
+        for name, side in hits:
             if name.endswith("length_scale") and side == "upper":
                 continue
             noise = name in ("noise_variance", "noise_ratio")

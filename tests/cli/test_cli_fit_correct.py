@@ -170,8 +170,9 @@ def test_a_zero_offset_is_named_and_fitted_with_mean_offset(linear_files, linear
 
 
 def test_too_few_reference_points_are_named(tmp_path):
-    """Three reference points: the fit takes them for noise about the identity (its noise
-    and length scale end at their bounds), and says that u cannot be trusted."""
+    """Three reference points: the fit takes them for noise about the identity (its length
+    scale at its bound, its noise over 1e4 times its variance), and says that u cannot be
+    trusted."""
     ref, dev = tmp_path / "ref.csv", tmp_path / "dev.csv"
     ref.write_text("testbed,reference\n0,0.0001\n0.5,0.4990\n1.0,1.0002\n")
     dev.write_text("device,testbed\n0.1,0.1003\n0.5,0.5002\n0.9,0.8995\n")
