@@ -84,6 +84,10 @@ def test_periodic_stage_is_unwrapped_to_the_reading(tmp_path):
         ("a,b\n1,1\n2,1\n3,3\n", 3, "not above"),
         ("a,b\n1,1\n2,2\n", 3, "at least 3 data rows"),
         ("a,b\n1,1\n2,2\n3,1e999\n", 4, "finite"),
+        # Python's float() reads these; a CSV cell with them is mistyped
+        ("a,b\n1,1\n2,2\n3,3_5\n", 4, "expected a number, got '3_5'"),
+        ("a,b\n1,1\n2,2\n\uff13,3\n", 4, "expected a number, got '\uff13'"),
+        ("a,b\n1,1\n\u0662.\u0661,2\n3,3\n", 3, "expected a number"),
     ],
 )
 def test_errors_name_file_and_row(tmp_path, text, row, words):

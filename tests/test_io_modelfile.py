@@ -293,6 +293,27 @@ def test_atomic_write_names_the_file_it_could_not_write(tmp_path):
     assert not any((tmp_path / "taken").iterdir())
 
 
+def test_atomic_write_names_the_file_on_a_full_disk(tmp_path):
+    """A write that fails with no file named (a full disk's ENOSPC): the error names the
+    destination, the file there keeps its content and no temporary is left."""
+    import errno
+
+    from cascal.io import atomic
+
+    dest = tmp_path / "m.json"
+    dest.write_text("good")
+
+    def full(tmp: str) -> None:
+        with open(tmp, "w") as fh:
+            fh.write("partial")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(OSError, match=f"cannot write {dest}: No space left on device"):
+        atomic.atomic_write(dest, full)
+    assert dest.read_text() == "good"
+    assert [p.name for p in tmp_path.iterdir()] == ["m.json"]
+
+
 def test_atomic_write_keeps_links_and_writes_pipes_in_place(tmp_path):
     """A symbolic link keeps pointing at the (replaced) target; a named pipe is written
     through, not replaced by a regular file."""

@@ -35,6 +35,7 @@ def _cmd_example(args: argparse.Namespace) -> int:
     from .plots import plot_cascade
     from .simulation import cost_j, simulate_trial
 
+    check_output(args.out, folder=True, option="--out")
     trial = simulate_trial(np.random.default_rng(args.seed))
     print(f"Simulated cascade (seed {args.seed}): D2 = {trial.d2[0].size} test-bed/reference")
     print(f"pairs with gaps at the ends and centre, D1 = {trial.d1[0].size} device/test-bed pairs.")
@@ -302,7 +303,8 @@ def _cmd_correct(args: argparse.Namespace) -> int:
         )
     if not gp:
         warn("correct", "method lut gives no uncertainty: columns u and U are left empty")
-    print(f"Corrected {out.size} readings -> {path} ({decimals} decimals)")
+    what = "reading" if out.size == 1 else "readings"
+    print(f"Corrected {out.size} {what} -> {path} ({decimals} decimals)")
     return 0
 
 
@@ -317,6 +319,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     folder = Path(args.devices)
     if not folder.is_dir():
         raise InputError(f"--devices {folder}: no such folder")
+    if Path(args.output).resolve() == folder.resolve():  # its summary: a device file next time
+        raise InputError(f"-o {args.output}: the same folder as --devices; give another")
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".csv" and p.is_file())
     if not files:
         raise InputError(f"no .csv device files in folder {folder}")
@@ -407,6 +411,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     recalibrate the linear device after a drift and compare."""
     from .cli_demo import run_demo
 
+    check_output(args.out, folder=True, option="--out")
     return run_demo(Path(args.out), seed=args.seed, main=main)
 
 
@@ -613,7 +618,7 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
         "--seed", type=seed, default=0, help="seed of the optimiser's starts (default 0)"
     )
     p.add_argument(
-        "--restarts", type=positive_int, default=5, help="optimiser starts per stage (default 5)"
+        "--restarts", type=restarts, default=5, help="optimiser starts per stage (default 5)"
     )
     p.add_argument(
         "--exclude",
@@ -712,6 +717,19 @@ def positive(text: str) -> float:
 def positive_int(text: str) -> int:
     """argparse type: an integer of at least 1."""
     return _whole(text, 1, "at least 1")
+
+
+#: Most optimiser starts per stage on the command line: beyond, a fit's time grows with no
+#: optimum left to find (a table's local maxima cap the runs well below).
+MAX_RESTARTS = 100
+
+
+def restarts(text: str) -> int:
+    """argparse type: optimiser starts per stage, 1 to :data:`MAX_RESTARTS`."""
+    value = _whole(text, 1, "at least 1")
+    if value > MAX_RESTARTS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_RESTARTS}, got {value}")
+    return value
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -827,7 +845,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
     except OSError as exc:
-        text = exc.strerror if exc.filename is None and exc.strerror else exc
+        text = exc.strerror or exc
+        if exc.filename is not None and exc.strerror:
+            text = f"{exc.filename}: {exc.strerror}"
         print(f"cascal {args.command}: error: {text}", file=sys.stderr)
         return EXIT_FAILURE
     except KeyboardInterrupt:

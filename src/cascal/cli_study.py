@@ -54,9 +54,11 @@ class Progress:
 
 
 def _cmd_study(args: argparse.Namespace) -> int:
+    from .cli import check_output
     from .montecarlo import StudyConfig
     from .study import run_study
 
+    check_output(args.out, folder=True, option="--out")
     config = StudyConfig(seed=args.seed, n_restarts=args.restarts)
     progress = Progress()
     t0 = time.perf_counter()
@@ -107,12 +109,12 @@ def _trials(text: str) -> int:
 
 def add_study_parser(sub) -> None:
     """Register ``cascal study`` on the subparsers ``sub``."""
-    from .cli import positive_int, seed
+    from .cli import positive_int, restarts, seed
 
     p = sub.add_parser("study", help="run the paper's Monte Carlo study (resumable)")
     p.add_argument("--trials", type=_trials, default=12000, help="number of trials (12000)")
     p.add_argument("--seed", type=seed, default=0, help="root seed (0)")
-    p.add_argument("--restarts", type=positive_int, default=3, help="optimiser starts (3)")
+    p.add_argument("--restarts", type=restarts, default=3, help="optimiser starts (3)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=positive_int, default=None, help="processes (CPU count)")
     where.add_argument(

@@ -146,6 +146,8 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
     out["report_edited_model"] = (
         ["report", tmp / "model_edited.json", "-o", dest], dest, ["checksum"], "model_edited.json"
     )  # fmt: skip
+    plain_out = tmp / "plain_out.csv"
+    plain_out.write_text("x")
     bad_tb = tmp / "non_numeric.csv"
     dest = tmp / "fleet_bad_testbed"
     out["fleet_bad_testbed"] = (
@@ -166,6 +168,23 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
         ["fit-devices", files[0], "--devices", tmp / "nowhere", "-o", dest], dest,
         ["--devices", "no such folder"], "nowhere",
     )  # fmt: skip
+    fleet = tmp / "fleet_in_place"
+    fleet.mkdir()
+    (fleet / "a.csv").write_text(GOOD)
+    out["fleet_output_is_the_devices_folder"] = (
+        ["fit-devices", files[0], "--devices", fleet, "-o", fleet], fleet / "testbed.json",
+        ["the same folder as --devices"], "fleet_in_place",
+    )  # fmt: skip
+    # Commands writing a folder of outputs check it before any work.
+    for name, cmd in [
+        ("study_out_is_a_file", ["study", "--trials", "2", "--workers", "1"]),
+        ("example_out_is_a_file", ["example"]),
+        ("demo_out_is_a_file", ["demo"]),
+    ]:
+        out[name] = (
+            [*cmd, "--out", plain_out], plain_out / "x",
+            ["--out", "expected a folder, got an existing file"], plain_out.name,
+        )  # fmt: skip
     # Compensation tables: a file type that is neither, a name C cannot take, a tolerance
     # that is no positive number, an edited model.
     for name, dest, extra, words in [
@@ -229,6 +248,10 @@ ALL = [
     "fleet_bad_testbed",
     "fleet_no_folder",
     "fleet_twin_devices",
+    "fleet_output_is_the_devices_folder",
+    "study_out_is_a_file",
+    "example_out_is_a_file",
+    "demo_out_is_a_file",
     "study_corrupt_database",
     "output_is_a_folder",
     "output_under_a_file",
@@ -260,3 +283,13 @@ def test_bad_input_exits_2_with_one_line(runs, name):
 def test_every_case_is_checked(runs):
     cases, _ = runs
     assert sorted(cases) == sorted(ALL)
+
+
+def test_restarts_beyond_the_cap_are_refused(tmp_path):
+    """Optimiser starts have a cap (a mistyped 100000 ran for hours, with no progress)."""
+    stage = tmp_path / "s.csv"
+    stage.write_text(GOOD)
+    res = run_cascal("fit", stage, "-o", tmp_path / "m.json", "--restarts", "101")
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "argument --restarts: expected at most 100, got 101" in res.stderr
+    assert not (tmp_path / "m.json").exists()

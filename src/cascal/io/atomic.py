@@ -80,7 +80,8 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
-        if isinstance(exc, OSError) and exc.filename in (tmp, str(dest)):
+        # (a full disk's error while writing names no file)
+        if isinstance(exc, OSError) and exc.filename in (tmp, str(dest), None):
             raise OSError(exc.errno, f"cannot write {dest}: {exc.strerror}") from None
         raise
     return dest

@@ -15,6 +15,7 @@ import hashlib
 import io
 import math
 import os
+import re
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -424,24 +425,25 @@ def _slow(
     return values, np.array(rows, dtype=np.int64)
 
 
+#: A number as a CSV cell may write it: ASCII digits, an optional sign, point and exponent,
+#: or nan / inf (refused later, by name). Python's ``float`` also takes digit-group
+#: underscores (``0.1_16``) and other scripts' digits (full-width ``１.0``): mistyped cells.
+_NUMBER = re.compile(
+    r"[+-]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|(?i:nan|inf|infinity))", re.ASCII
+)
+
+
 def _number(cell: str, name: str, row: int, column: str) -> float:
     s = cell.strip()
     if not s:
         raise InputError("expected a number, got an empty cell", file=name, row=row, column=column)
-    try:
-        v = float(s)
-    except ValueError:
-        raise InputError(
-            f"expected a number, got {s!r}", file=name, row=row, column=column
-        ) from None
+    if not _NUMBER.fullmatch(s):
+        raise InputError(f"expected a number, got {s!r}", file=name, row=row, column=column)
+    v = float(s)
     if not math.isfinite(v):
         raise InputError(f"expected a finite number, got {s!r}", file=name, row=row, column=column)
     return v
 
 
 def _is_number(s: str) -> bool:
-    try:
-        float(s)
-    except ValueError:
-        return False
-    return True
+    return _NUMBER.fullmatch(s.strip()) is not None
