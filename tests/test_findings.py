@@ -51,3 +51,16 @@ def test_three_points_hit_their_bounds_and_clean_data_none(tmp_path, smooth):
     ]
     x, y = smooth
     assert fit_findings(fit_model([_stage(tmp_path / "ok.csv", x, y)], n_restarts=2)) == []
+
+
+def test_three_points_that_interpolate_at_any_noise_are_named(tmp_path):
+    """Three reference points of a review (from the demo's file): the fit passes through
+    them at any noise below 1e-10 of the variance (the run below that floor gains 6e-10
+    nats), so the noise is not estimated and u is far too small (17.7 % of check points
+    inside U). The noise stays at its first floor and is named, as at a bound."""
+    x = [-0.045103644571, 0.343952608537, 0.978728600451]
+    y = [-0.000043643525, 0.402522016101, 1.000138897997]
+    model = fit_model([_stage(tmp_path / "ref3.csv", x, y)])
+    assert fit_findings(model) == [BoundHit(0, "noise_ratio", "lower", 3)]
+    hp = model.fitted.models[0].hyperparameters
+    assert hp["noise_variance"] / hp["variance"] == pytest.approx(1e-10, rel=1e-3)

@@ -44,6 +44,10 @@ _BLAS: list = []
 #: with the bound this many times lower: readings of nanometre noise on millimetre errors
 #: want a noise about 1e-12 of the signal variance.
 NOISE_FLOOR_DROP = 1e3
+#: Log marginal likelihood (nats) that the run below the first floor must gain to count as
+#: estimating the noise there (a rotary case: 68; 3 or 5 readings on a smooth map: below
+#: 1e-6, a likelihood flat in the noise).
+NOISE_FLOOR_GAIN = 0.1
 #: Points of each subset whose optima start the fit of a stage too large for a likelihood
 #: table (over ``2 * SUBSET`` points), see :func:`_subset_starts`; on an equally spaced
 #: grid the subsets use the cached eigenbases of :mod:`cascal.surrogate` (up to 160 points).
@@ -584,7 +588,11 @@ def _restrict(noise: Noise, idx: np.ndarray, n: int) -> Noise:
 def _below_noise_floor(obj: Objective, b: np.ndarray, found: OptimResult) -> OptimResult:
     """``found``, or where its learned noise (the last parameter) is at its lower bound, a
     run from there with that bound :data:`NOISE_FLOOR_DROP` times lower (never lower in
-    value: it starts at ``found``'s optimum)."""
+    value: it starts at ``found``'s optimum). Where that run gains less than
+    :data:`NOISE_FLOOR_GAIN`, the data do not tell a smaller noise (3 points, say: the fit
+    interpolates at any noise): the result keeps the first bound, at which
+    :meth:`~cascal.optimize.OptimResult.at_bounds` shows the noise, so the fit's findings
+    say that the noise is not estimated."""
     if (obj.names[-1], "lower") not in found.at_bounds():
         return found
     wide = b.copy()
@@ -603,7 +611,7 @@ def _below_noise_floor(obj: Objective, b: np.ndarray, found: OptimResult) -> Opt
         theta=run.theta,
         value=run.value,
         starts=found.starts + run.starts,
-        bounds=wide,
+        bounds=wide if run.value - found.value >= NOISE_FLOOR_GAIN else b,
     )
 
 
