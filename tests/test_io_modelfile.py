@@ -168,6 +168,17 @@ def test_schema_violation_with_a_valid_checksum(saved):
         (lambda d: d["stages"][1]["model"]["alpha"].pop(), "alpha"),
         (lambda d: d.__setitem__("method", "lut"), "does not match the stage models"),
         (lambda d: d["provenance"]["inputs"].pop(), "input files for 2 stages"),
+        # a review's forgeries, which had loaded (the first corrected readings wrongly)
+        (lambda d: d["stages"][1]["x"].reverse(), "do not belong to one fit"),
+        (lambda d: d["stages"][1]["model"]["targets"].__setitem__(3, 0.5), "one fit"),
+        (lambda d: d["stages"][1]["model"]["alpha"].__setitem__(3, 1.0), "one fit"),
+        (
+            lambda d: d["stages"][0].__setitem__("noise", [-1e-8] * len(d["stages"][0]["x"])),
+            "noise variance below 0",
+        ),
+        (lambda d: d.__setitem__("kernel", "periodic"), "kernel 'periodic' with period None"),
+        (lambda d: d.__setitem__("kernel", "matern32"), "stage 0: its kernel is not"),
+        (lambda d: d.__setitem__("unit", "m\nrm"), "printable characters"),
     ],
 )
 def test_inconsistent_arrays_with_a_valid_checksum(saved, change, words):

@@ -274,6 +274,10 @@ def _from_dict(doc: dict) -> CalibrationModel:
         c = np.array(st["counts"], np.int64)
         if y.size != n or c.size != n or (noise is not None and noise.size != n):
             raise ValueError(f"stage {k}: x, y, noise and counts differ in length")
+        if noise is not None and np.any(noise < 0):
+            raise ValueError(f"stage {k}: a noise variance below 0")
+        if np.any(c < 1):
+            raise ValueError(f"stage {k}: a point of fewer than 1 reading (counts)")
         m = st["model"]
         targets = np.array(m["targets"], float)
         if m["type"] == "gp":
@@ -290,6 +294,19 @@ def _from_dict(doc: dict) -> CalibrationModel:
         used.append(Stage(x, targets, noise, st["name"]))
         counts.append(c)
     method = doc["method"]
+    unit = doc["unit"]
+    if not (1 <= len(unit) <= 20 and unit.isprintable()):  # (it is written into C comments)
+        raise ValueError(f"unit: expected 1 to 20 printable characters, got {unit!r}")
+    name, period = doc["kernel"], doc["period"]
+    if name in _NAMED:  # (a kernel built in Python is stored under its repr)
+        if (name == "periodic") != (period is not None):
+            raise ValueError(f"kernel {name!r} with period {period!r}")
+        for k, m in enumerate(models):
+            if isinstance(m, FittedGP) and (
+                type(m.kernel) is not _NAMED[name]
+                or (period is not None and m.kernel.period != period)  # type: ignore[attr-defined]
+            ):
+                raise ValueError(f"stage {k}: its kernel is not kernel {name!r}")
     tables = [isinstance(m, OffsetTable) for m in models]
     if (method == "lut" and not all(tables)) or (method != "lut" and any(tables)):
         raise ValueError(f"method {method!r} does not match the stage models")
@@ -345,7 +362,7 @@ def _gp_from(m: dict, x: np.ndarray, targets: np.ndarray) -> FittedGP:
     for i, r in enumerate(rows):
         L[i, : i + 1] = r
     lml = m["log_marginal_likelihood"]
-    return FittedGP.from_arrays(
+    gp = FittedGP.from_arrays(
         x,
         targets,
         kernel=_kernel_from(m["kernel"]),
@@ -358,6 +375,20 @@ def _gp_from(m: dict, x: np.ndarray, targets: np.ndarray) -> FittedGP:
         log_marginal_likelihood=math.nan if lml is None else lml,
         optimization=None if m["optimization"] is None else _opt_from(m["optimization"]),
     )
+    _check_weights(gp)
+    return gp
+
+
+def _check_weights(gp: FittedGP) -> None:
+    """Refuse weights ``alpha`` that do not solve ``L L^T alpha = targets - mean(x)``
+    beyond the solves' round-off (``n eps |L| |L^T| |alpha|``, with room to spare): the
+    readings, targets, mean, factor and weights belong to one fit. O(n^2)."""
+    L, a = gp.L, gp.alpha
+    r = gp.y - gp.mean(gp.x)
+    bound = np.abs(L) @ (np.abs(L.T) @ np.abs(a))
+    slack = 1e3 * a.size * np.finfo(float).eps * bound + 1e-300
+    if np.any(np.abs(L @ (L.T @ a) - r) > slack + 1e-12 * np.max(np.abs(r), initial=0.0)):
+        raise ValueError("alpha, cholesky, x and targets do not belong to one fit")
 
 
 def _lut_dict(table: OffsetTable, targets: np.ndarray) -> dict[str, Any]:
@@ -385,6 +416,10 @@ def _kernel_dict(k: Kernel) -> dict[str, Any]:
     if name in _SCALED:
         return {"type": name, "length_scale": float(k.length_scale), "variance": float(k.variance)}
     raise ValueError(f"kernel {name} cannot be stored in a model file")
+
+
+#: The kernels that the command line names, by name.
+_NAMED = {"se": SquaredExp, "matern32": Matern32, "matern52": Matern52, "periodic": Periodic}
 
 
 def _kernel_from(d: dict) -> Kernel:
