@@ -65,6 +65,35 @@ def test_jitter_recorded_in_fit():
     assert_allclose(fit.L @ fit.L.T, Kt, rtol=1e-10, atol=1e-12 * 1e-4)
 
 
+def test_a_factor_of_round_off_pivots_gets_jitter():
+    """Repeated positions and no noise: K is exactly singular, yet LAPACK's dpotrf reports
+    success with pivots of round-off (a review's case: 1.2e-8 of the standard deviation,
+    each adding about 18 nats to the likelihood). Such a factor counts as failed: jitter
+    is added and recorded, in the fit too, whose likelihood is then that of K + jitter."""
+    from scipy.linalg import lapack
+
+    a = 1.0 / 3.0  # [[1, a], [a, a^2 + 1 ulp]]: its second pivot is round-off
+    A = np.array([[1.0, a], [a, np.nextafter(a * a, 1.0)]])
+    L0, info = lapack.dpotrf(A, lower=1, clean=1)
+    assert info == 0 and 0 < L0[1, 1] ** 2 < 1e-15  # the premise
+    L, jitter = cholesky(A)
+    assert jitter == pytest.approx(JITTER_STEPS[0] * np.mean(np.diagonal(A)), rel=1e-12)
+    assert L[1, 1] ** 2 > 0.5 * jitter
+    # a fit: whether dpotrf fails or "succeeds" on such a K is round-off's luck; either way
+    # it gets jitter now (it had recorded none, with a likelihood 14 nats too high)
+    x = np.array([0, 0.1, 0.1, 0.2, 0.3, 0.3, 0.3, 0.5, 0.7, 0.9])
+    y = x + 1e-3 * np.sin(10 * x)
+    fit = fit_gp(x, y, noise=0.0)
+    assert fit.jitter > 0
+    hp = fit.hyperparameters
+    Kt = se(x, x, hp["length_scale"], hp["variance"]) + fit.jitter * np.eye(x.size)
+    sign, logdet_kt = np.linalg.slogdet(Kt)
+    r = y - x
+    lml = -0.5 * (r @ np.linalg.solve(Kt, r) + logdet_kt + x.size * np.log(2 * np.pi))
+    # (K + jitter has a condition number of about 1e12: the dense formula holds 1e-3)
+    assert sign > 0 and fit.log_marginal_likelihood == pytest.approx(lml, abs=1e-3)
+
+
 def test_cholesky_refuses_indefinite(rng):
     Q, _ = np.linalg.qr(rng.normal(size=(5, 5)))
     A = (Q * np.array([3.0, 2.0, 1.0, 0.5, -1.0])) @ Q.T

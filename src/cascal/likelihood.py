@@ -75,8 +75,8 @@ class Objective:
 
     def _factor(self, Kt: np.ndarray) -> np.ndarray:
         L, info = lapack.dpotrf(Kt, lower=1, clean=1)
-        self._exact = info == 0
-        if info != 0:
+        self._exact = info == 0 and linalg.pivots_ok(L, Kt)
+        if not self._exact:
             L, _ = linalg.cholesky(Kt)
         return L
 
