@@ -831,3 +831,24 @@ def test_subset_noise_is_the_restricted_noise():
     v = rng.random(6)
     d = _restrict(Diagonal(v), idx, 6)
     assert d.is_diagonal and np.array_equal(d.diagonal(3), v[idx])
+
+
+def test_predictions_do_not_depend_on_blas_threads(monkeypatch):
+    """A review saw predictions differ in their last bits with two BLAS threads (the
+    standard deviation's triangular solve): predict runs single-threaded, as fits do."""
+    from threadpoolctl import threadpool_limits
+
+    from cascal import gp
+
+    monkeypatch.setattr(gp, "_PINNED", [])  # as in a process that pin_blas never ran in
+    rng = np.random.default_rng(0)
+    x = np.sort(rng.uniform(0.0, 1.0, 300))
+    y = x + 1e-3 * np.sin(7 * x) + 1e-5 * rng.standard_normal(300)
+    fit = fit_gp(x, y, n_restarts=1)
+    xs = np.linspace(0.0, 1.0, 20001)
+    out = []
+    for threads in (1, 2):
+        with threadpool_limits(limits=threads, user_api="blas"):
+            out.append(fit.predict(xs, return_std=True))
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    np.testing.assert_array_equal(out[0][1], out[1][1])

@@ -235,3 +235,10 @@ def test_excluding_a_row_that_holds_no_data_is_refused(tmp_path, row, words):
     with pytest.raises(InputError, match=f"row {row} is to be excluded.*{words}") as exc:
         read_stage(p, exclude={row, 5})
     assert exc.value.row == row
+
+
+def test_utf16_files_are_named_as_such(tmp_path):
+    p = tmp_path / "unicode.txt"
+    p.write_bytes("a,b\n1,1\n2,2\n3,3\n".encode("utf-16"))  # with its byte-order mark
+    with pytest.raises(InputError, match="UTF-16 text, not UTF-8: save it as CSV"):
+        read_stage(p)

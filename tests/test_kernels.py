@@ -279,3 +279,11 @@ def test_fd_helper_on_kernel_entry():
 
     _, dK = k.gradient(np.array([a, b]))
     assert_allclose(fd_gradient(entry, k.theta), dK[:, 0, 1], rtol=1e-7)
+
+
+@pytest.mark.parametrize("cls", [SquaredExp, Matern32, Matern52])
+def test_a_length_scale_whose_square_underflows_is_refused(cls):
+    # (a review's case: 1e-300 from the user's hyperparameters gave a ZeroDivisionError)
+    with pytest.raises(ValueError, match="length_scale must be above 1e-154, got 1e-300"):
+        cls(1e-300, 1.0)
+    assert cls(1e-150, 1.0)(np.array([0.0]), np.array([0.0]))[0, 0] == 1.0

@@ -466,6 +466,11 @@ def _fit_kwargs(args: argparse.Namespace) -> dict[str, object]:
             f"--mean {args.mean}: the lookup tables of --method lut have no prior mean; "
             "leave --mean out, or choose a GP method"
         )
+    if args.kernel in ("matern32", "matern52") and args.method == "lut":
+        raise InputError(
+            f"--kernel {args.kernel}: the lookup tables of --method lut have no kernel; "
+            "leave --kernel out, or choose a GP method"
+        )
     return dict(
         method=args.method,
         kernel=args.kernel,
@@ -753,8 +758,13 @@ def _parser() -> argparse.ArgumentParser:
     _fit_options(fit)
     fit.set_defaults(func=_cmd_fit)
 
-    cor = sub.add_parser("correct", help="correct device readings with a model file")
-    cor.add_argument("model", metavar="MODEL.json")
+    cor = sub.add_parser(
+        "correct",
+        help="correct device readings with a model file",
+        description="Correct device readings with a model file: each reading's estimated "
+        "true position and its standard uncertainty u, as CSV.",
+    )
+    cor.add_argument("model", metavar="MODEL.json", help="model file written by cascal fit")
     cor.add_argument(
         "readings", metavar="READINGS.csv", help="device readings, one column with a header"
     )
@@ -799,9 +809,14 @@ def _parser() -> argparse.ArgumentParser:
     _fit_options(fd)
     fd.set_defaults(func=_cmd_fit_devices)
 
-    rep = sub.add_parser("report", help="write a self-contained HTML report of a model file")
-    rep.add_argument("model", metavar="MODEL.json")
-    rep.add_argument("-o", "--output", required=True, metavar="REPORT.html")
+    rep = sub.add_parser(
+        "report",
+        help="write a self-contained HTML report of a model file",
+        description="Write a self-contained HTML report of a model file: its stages, fits, "
+        "uncertainty and figures, in one file with no external links.",
+    )
+    rep.add_argument("model", metavar="MODEL.json", help="model file written by cascal fit")
+    rep.add_argument("-o", "--output", required=True, metavar="REPORT.html", help="file to write")
     rep.set_defaults(func=_cmd_report)
 
     demo = sub.add_parser(
@@ -834,6 +849,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(join_negative(list(sys.argv[1:] if argv is None else argv)))
     func: Callable[[argparse.Namespace], int] = args.func
     to_stdout = is_stdout(getattr(args, "output", None))
+    from .gp import pin_blas
+
+    pin_blas()  # one BLAS thread: the same numbers on every machine (fits run so anyway)
     try:  # an output written to stdout keeps it: the command's own lines go to stderr
         with contextlib.redirect_stdout(sys.stderr) if to_stdout else contextlib.nullcontext():
             return func(args)

@@ -195,6 +195,12 @@ class FittedGP:
         if return_std and return_cov:
             raise InputError("predict: ask for return_std or return_cov, not both")
         xs = as_positions(x, "x")
+        with single_threaded_blas():  # the same numbers whatever BLAS's threads
+            return self._predict(xs, return_std, return_cov)
+
+    def _predict(
+        self, xs: np.ndarray, return_std: bool, return_cov: bool
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         if return_cov:
             Ks = self.kernel(xs, self.x)
             V = solve_triangular(self.L, Ks.T, lower=True, check_finite=False)

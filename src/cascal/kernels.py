@@ -112,6 +112,8 @@ class _Scaled(Kernel):
             v = getattr(self, name)
             if not math.isfinite(v) or v <= 0:  # math: 15x faster on a float
                 raise InputError(f"{name} must be positive and finite, got {v!r}")
+        if self.length_scale * self.length_scale == 0.0:  # d^2 / l^2 would divide by 0
+            raise InputError(f"length_scale must be above 1e-154, got {self.length_scale!r}")
 
     @property
     def theta(self) -> np.ndarray:

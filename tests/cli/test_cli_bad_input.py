@@ -42,6 +42,11 @@ FIT_CASES = {
         ["--method", "lut", "--mean", "offset"],
         ["--mean offset", "no prior mean"],
     ),
+    "kernel_for_lookup_tables": (
+        GOOD,
+        ["--method", "lut", "--kernel", "matern32"],
+        ["--kernel matern32", "have no kernel"],
+    ),
     "period_too_short": (
         GOOD,
         ["--kernel", "periodic", "--period", "2"],
@@ -74,6 +79,7 @@ NO_FILE_NAMED = {
     "periodic_without_period",
     "period_without_periodic",
     "mean_for_lookup_tables",
+    "kernel_for_lookup_tables",
     "negative_period",
     "export_bad_name",
     "export_bad_tolerance",

@@ -146,6 +146,10 @@ def read_table(
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
+        if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):  # spreadsheets' "Unicode text"
+            raise InputError(
+                "UTF-16 text, not UTF-8: save it as CSV (UTF-8) instead", file=name
+            ) from None
         raise InputError(f"not UTF-8 text ({exc.reason} at byte {exc.start})", file=name) from None
     text = text.replace("\r\n", "\n").replace("\r", "\n")  # CRLF, and CR alone (old Macs)
     first = text.split("\n", 1)[0]
