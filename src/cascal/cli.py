@@ -390,6 +390,17 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             "suspect rows (column suspect_rows of the summary)"
         )
     print(f"{len(results) - n_bad} of {len(results)} devices calibrated; summary: {summary}")
+    current = {f.stem.casefold() for f in files}
+    stale = sorted(
+        p.name for p in (out / "devices").glob("*.json") if p.stem.casefold() not in current
+    )
+    if stale:  # an earlier run's devices: kept, but no longer in the summary
+        warn(
+            "fit-devices",
+            f"{out / 'devices'}: {len(stale)} model(s) of devices with no file in {folder} now "
+            f"({', '.join(stale[:3])}{', ...' if len(stale) > 3 else ''}): left as they were, "
+            "not in the summary",
+        )
     return EXIT_FAILURE if n_bad else 0
 
 

@@ -148,3 +148,22 @@ def test_a_device_file_with_its_columns_swapped_is_named(fleet, tmp_path):
     assert res.returncode == 0, res.stderr
     assert f"swapped.csv: its columns ({y}, {x}) follow " in res.stderr
     assert "are one file's columns swapped?" in res.stderr
+
+
+def test_models_of_devices_gone_from_the_folder_are_named(fleet, tmp_path):
+    """A second run after a device file was removed: its model of the first run stays in
+    devices/ but is no longer in the summary, which the run says (a review's case)."""
+    _, tb, folder, *_ = fleet
+    mine = tmp_path / "devices"
+    mine.mkdir()
+    for name in ("device01.csv", "device02.csv"):
+        (mine / name).write_text((folder / name).read_text())
+    out = tmp_path / "out"
+    argv = ("fit-devices", tb, "--devices", mine, "-o", out, "--restarts", "2")
+    assert run_cascal(*argv).returncode == 0
+    (mine / "device02.csv").unlink()
+    res = run_cascal(*argv)
+    assert res.returncode == 0, res.stderr
+    assert "1 model(s) of devices with no file in" in res.stderr
+    assert "(device02.json): left as they were, not in the summary" in res.stderr
+    assert (out / "devices" / "device02.json").exists()
