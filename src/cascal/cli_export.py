@@ -23,7 +23,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
     if args.tolerance is not None and not (0 < args.tolerance < float("inf")):
         raise InputError(f"--tolerance: expected a positive number, got {args.tolerance!r}")
     if out.suffix not in (".h", ".csv"):
-        raise InputError(f"-o {out}: expected a .h (C header) or .csv file name")
+        why = " (the format follows it: standard output has none)" if str(out) == "-" else ""
+        raise InputError(f"-o {out}: expected a .h (C header) or .csv file name{why}")
     if args.name is not None and out.suffix != ".h":
         raise InputError(f"--name: names the identifiers of a C header; -o {out} is CSV")
     name = _identifier(out.stem) if args.name is None else c_identifier(args.name)
