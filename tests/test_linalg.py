@@ -44,7 +44,7 @@ def test_cholesky_singular_gets_jitter():
     L, jitter = cholesky(A)
     scale = np.mean(np.diagonal(A))
     assert jitter > 0
-    assert any(jitter == pytest.approx(r * scale, rel=1e-15) for r in JITTER_STEPS)
+    assert any(jitter == pytest.approx(r * scale, rel=1e-15, abs=0) for r in JITTER_STEPS)
     assert_allclose(L @ L.T, A + jitter * np.eye(len(A)), rtol=1e-10, atol=1e-12 * scale)
     assert np.all(np.isfinite(L))
 
@@ -60,7 +60,7 @@ def test_jitter_recorded_in_fit():
         hyperparameters={"length_scale": 0.2, "variance": 1e-4},
     )
     assert fit.jitter > 0
-    assert fit.jitter == pytest.approx(cholesky(se(x, x, 0.2, 1e-4))[1], rel=1e-12)
+    assert fit.jitter == pytest.approx(cholesky(se(x, x, 0.2, 1e-4))[1], rel=1e-12, abs=0)
     Kt = se(x, x, 0.2, 1e-4) + fit.jitter * np.eye(x.size)
     assert_allclose(fit.L @ fit.L.T, Kt, rtol=1e-10, atol=1e-12 * 1e-4)
 
@@ -68,17 +68,22 @@ def test_jitter_recorded_in_fit():
 def test_a_factor_of_round_off_pivots_gets_jitter():
     """Repeated positions and no noise: K is exactly singular, yet LAPACK's dpotrf reports
     success with pivots of round-off (a review's case: 1.2e-8 of the standard deviation,
-    each adding about 18 nats to the likelihood). Such a factor counts as failed: jitter
-    is added and recorded, in the fit too, whose likelihood is then that of K + jitter."""
+    each adding about 18 nats to the likelihood). For a matrix with no noise on its
+    diagonal, such a factor counts as failed: jitter is added and recorded, in the fit
+    too, whose likelihood is then that of K + jitter."""
     from scipy.linalg import lapack
 
     a = 1.0 / 3.0  # [[1, a], [a, a^2 + 1 ulp]]: its second pivot is round-off
     A = np.array([[1.0, a], [a, np.nextafter(a * a, 1.0)]])
     L0, info = lapack.dpotrf(A, lower=1, clean=1)
     assert info == 0 and 0 < L0[1, 1] ** 2 < 1e-15  # the premise
-    L, jitter = cholesky(A)
-    assert jitter == pytest.approx(JITTER_STEPS[0] * np.mean(np.diagonal(A)), rel=1e-12)
+    L, jitter = cholesky(A, noiseless=True)
+    assert jitter == pytest.approx(JITTER_STEPS[0] * np.mean(np.diagonal(A)), rel=1e-12, abs=0)
     assert L[1, 1] ** 2 > 0.5 * jitter
+    # with a noise on the diagonal, however small, the pivots are bounded below: kept (a
+    # review found jitter there cost fits at the noise floor up to 540 nats)
+    L, jitter = cholesky(A)
+    assert jitter == 0.0 and L[1, 1] == L0[1, 1]
     # a fit: whether dpotrf fails or "succeeds" on such a K is round-off's luck; either way
     # it gets jitter now (it had recorded none, with a likelihood 14 nats too high)
     x = np.array([0, 0.1, 0.1, 0.2, 0.3, 0.3, 0.3, 0.5, 0.7, 0.9])

@@ -39,6 +39,9 @@ _BLOCK = 32768
 #: resolves, e.g. 0.2 apart with a 0.04-nat dip, in a study fit).
 PROBE = 0.2
 _BLAS: list = []
+#: Matrix entries (readings x points) up to which OpenBLAS computes a prediction on one
+#: thread anyway (its products and solves thread from 9216 entries): no limit entered.
+_ONE_THREAD = 8192
 #: A learned noise (with no known noise) that ends at its lower bound (1e-10 of the signal
 #: variance, or of the corrections' variance where that is not profiled) is searched again
 #: with the bound this many times lower: readings of nanometre noise on millimetre errors
@@ -195,6 +198,8 @@ class FittedGP:
         if return_std and return_cov:
             raise InputError("predict: ask for return_std or return_cov, not both")
         xs = as_positions(x, "x")
+        if xs.size * self.x.size <= _ONE_THREAD:  # (the limit's 10 us would dominate)
+            return self._predict(xs, return_std, return_cov)
         with single_threaded_blas():  # the same numbers whatever BLAS's threads
             return self._predict(xs, return_std, return_cov)
 
@@ -674,7 +679,8 @@ def _condition(x, y, kern, m, known, sn2, optimization, factor=None) -> FittedGP
         if known is not None:
             Kt = known.add_to(Kt)
         Kt.flat[:: n + 1] += sn2
-        L, jitter = linalg.cholesky(Kt, what="target covariance")
+        noiseless = sn2 == 0.0 and (known is None or float(np.min(known.diagonal(n))) <= 0.0)
+        L, jitter = linalg.cholesky(Kt, what="target covariance", noiseless=noiseless)
         alpha = linalg.cho_solve(L, r)
     lml = -0.5 * float(r @ alpha) - 0.5 * linalg.logdet(L) - 0.5 * n * _LOG2PI
     return FittedGP(x, y, kern, m, known, sn2, L, alpha, jitter, lml, optimization)

@@ -56,6 +56,10 @@ class Objective:
         self.known_matrix = None if known is None else known.dense(self.n)
         self.profile = bool(profile)
         self._exact = True
+        # no noise on the diagonal (a kernel matrix alone): round-off pivots count as failed
+        self._noiseless = not learn_noise and (
+            self.known_matrix is None or float(np.min(np.diagonal(self.known_matrix))) <= 0.0
+        )
         self._last: tuple | None = None  # (theta bytes, L, Kt^-1 r, r^T A^-1 r or None)
         if self.profile and not (isinstance(kernel, _Scaled) and known is None and learn_noise):
             raise ValueError("profiling needs a scaled kernel, no known noise, learned noise")
@@ -75,9 +79,9 @@ class Objective:
 
     def _factor(self, Kt: np.ndarray) -> np.ndarray:
         L, info = lapack.dpotrf(Kt, lower=1, clean=1)
-        self._exact = info == 0 and linalg.pivots_ok(L, Kt)
+        self._exact = info == 0 and (not self._noiseless or linalg.pivots_ok(L, Kt))
         if not self._exact:
-            L, _ = linalg.cholesky(Kt)
+            L, _ = linalg.cholesky(Kt, noiseless=self._noiseless)
         return L
 
     def factor_at(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

@@ -80,8 +80,12 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
-        # (a full disk's error while writing names no file)
-        if isinstance(exc, OSError) and exc.filename in (tmp, str(dest), None):
+        # (a full disk's error while writing names no file, but has its errno)
+        if (
+            isinstance(exc, OSError)
+            and exc.errno is not None
+            and exc.filename in (tmp, str(dest), None)
+        ):
             raise OSError(exc.errno, f"cannot write {dest}: {exc.strerror}") from None
         raise
     return dest

@@ -97,8 +97,6 @@ class CalibrationModel:
             not np.array_equal(f.x, c.x) for f, c in zip(fitted.stages, cascade.stages, strict=True)
         ):
             raise InputError("fitted: not a fit of this cascade's stages")
-        if not (isinstance(unit, str) and 1 <= len(unit) <= 20 and unit.isprintable()):
-            raise InputError(f"unit: expected 1 to 20 printable characters, got {unit!r}")
         sources = tuple(
             Source(
                 f"<{st.name}>",
@@ -120,6 +118,9 @@ class CalibrationModel:
             cascade.seed,
             int(cascade.n_restarts),
         )
+
+    def __post_init__(self) -> None:
+        _check_unit(self.unit, InputError)
 
     @property
     def method(self) -> str:
@@ -294,19 +295,16 @@ def _from_dict(doc: dict) -> CalibrationModel:
         used.append(Stage(x, targets, noise, st["name"]))
         counts.append(c)
     method = doc["method"]
-    unit = doc["unit"]
-    if not (1 <= len(unit) <= 20 and unit.isprintable()):  # (it is written into C comments)
-        raise ValueError(f"unit: expected 1 to 20 printable characters, got {unit!r}")
+    _check_unit(doc["unit"], ValueError)
     name, period = doc["kernel"], doc["period"]
-    if name in _NAMED:  # (a kernel built in Python is stored under its repr)
-        if (name == "periodic") != (period is not None):
-            raise ValueError(f"kernel {name!r} with period {period!r}")
-        for k, m in enumerate(models):
-            if isinstance(m, FittedGP) and (
-                type(m.kernel) is not _NAMED[name]
-                or (period is not None and m.kernel.period != period)  # type: ignore[attr-defined]
-            ):
-                raise ValueError(f"stage {k}: its kernel is not kernel {name!r}")
+    if name in _NAMED and (name == "periodic") != (period is not None):
+        raise ValueError(f"kernel {name!r} with period {period!r}")
+    for k, m in enumerate(models):  # (a prefix's stages may have another kernel)
+        if isinstance(m, FittedGP) and isinstance(m.kernel, Periodic) and m.kernel.period != period:
+            raise ValueError(
+                f"stage {k}: a periodic kernel of period {m.kernel.period!r}, "
+                f"not the model's {period!r}"
+            )
     tables = [isinstance(m, OffsetTable) for m in models]
     if (method == "lut" and not all(tables)) or (method != "lut" and any(tables)):
         raise ValueError(f"method {method!r} does not match the stage models")
@@ -418,8 +416,14 @@ def _kernel_dict(k: Kernel) -> dict[str, Any]:
     raise ValueError(f"kernel {name} cannot be stored in a model file")
 
 
-#: The kernels that the command line names, by name.
-_NAMED = {"se": SquaredExp, "matern32": Matern32, "matern52": Matern52, "periodic": Periodic}
+#: The kernels that the command line names.
+_NAMED = ("se", "matern32", "matern52", "periodic")
+
+
+def _check_unit(unit: object, error: type[Exception]) -> None:
+    """A unit label: 1 to 20 printable characters (it goes into messages and C comments)."""
+    if not (isinstance(unit, str) and 1 <= len(unit) <= 20 and unit.isprintable()):
+        raise error(f"unit: expected 1 to 20 printable characters, got {unit!r}")
 
 
 def _kernel_from(d: dict) -> Kernel:
