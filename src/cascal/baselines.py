@@ -49,7 +49,9 @@ class OffsetTable:
 
 
 def fit_table(x: object, y: object, names: tuple[str, str] = ("x", "y")) -> OffsetTable:
-    """Table mapping readings ``x`` (n,) to references ``y`` (n,); repeats are averaged."""
+    """Table mapping readings ``x`` (n,) to references ``y`` (n,). A repeated reading
+    must repeat its reference too (:func:`~cascal.validation.check_pair` refuses others:
+    average them first, ``cascal.aggregate_repeats``); it is one knot."""
     xa, ya = check_pair(x, y, names)
     order = np.argsort(xa, kind="stable")
     knots = xa[order]

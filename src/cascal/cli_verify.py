@@ -16,7 +16,7 @@ _TOO_LARGE = 3.0
 def _cmd_verify(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import EXIT_NOT_CONFORMING, HUGE, check_outputs, warn
+    from .cli import EXIT_NOT_CONFORMING, HUGE, check_outputs, warn, warn_homoscedastic
     from .errors import InputError
     from .io.csvout import auto_decimals, write_columns
     from .io.data import read_table
@@ -28,6 +28,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     if args.x_column is not None and args.x_column == args.y_column:
         raise InputError(f"--x-column and --y-column both name {args.x_column!r}; give two")
     model = load_model(args.model)
+    warn_homoscedastic("verify", model)
     hint = "; choose two by name with --x-column and --y-column"
     table = read_table(args.check, (args.x_column, args.y_column), hint=hint, max_abs=HUGE)
     reading, reference = table.columns
