@@ -765,6 +765,14 @@ def restarts(text: str) -> int:
     return value
 
 
+def _model_command(sub, name: str, what: str, details: str) -> argparse.ArgumentParser:
+    """Register command ``name`` that reads a model file: ``what`` it does (its help, and
+    with ``details`` its description) and its MODEL.json argument."""
+    p = sub.add_parser(name, help=what, description=f"{what[0].upper()}{what[1:]}: {details}")
+    p.add_argument("model", metavar="MODEL.json", help="model file written by cascal fit")
+    return p
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="cascal", description="Cascaded calibration of position sensors with GPs."
@@ -786,13 +794,12 @@ def _parser() -> argparse.ArgumentParser:
     _fit_options(fit)
     fit.set_defaults(func=_cmd_fit)
 
-    cor = sub.add_parser(
+    cor = _model_command(
+        sub,
         "correct",
-        help="correct device readings with a model file",
-        description="Correct device readings with a model file: each reading's estimated "
-        "true position and its standard uncertainty u, as CSV.",
+        "correct device readings with a model file",
+        "each reading's estimated true position and its standard uncertainty u, as CSV.",
     )
-    cor.add_argument("model", metavar="MODEL.json", help="model file written by cascal fit")
     cor.add_argument(
         "readings", metavar="READINGS.csv", help="device readings, one column with a header"
     )
@@ -837,13 +844,12 @@ def _parser() -> argparse.ArgumentParser:
     _fit_options(fd)
     fd.set_defaults(func=_cmd_fit_devices)
 
-    rep = sub.add_parser(
+    rep = _model_command(
+        sub,
         "report",
-        help="write a self-contained HTML report of a model file",
-        description="Write a self-contained HTML report of a model file: its stages, fits, "
-        "uncertainty and figures, in one file with no external links.",
+        "write a self-contained HTML report of a model file",
+        "its stages, fits, uncertainty and figures, in one file with no external links.",
     )
-    rep.add_argument("model", metavar="MODEL.json", help="model file written by cascal fit")
     rep.add_argument("-o", "--output", required=True, metavar="REPORT.html", help="file to write")
     rep.set_defaults(func=_cmd_report)
 
