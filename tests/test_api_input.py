@@ -147,3 +147,19 @@ def test_unwrap_moves_a_rotary_reading_past_the_period_back_beyond_it():
     b = fit_gp(x, y, kernel="periodic", period=360.0, hyperparameters=hp)
     xs = np.array([10.0, 180.0, 359.99])
     np.testing.assert_allclose(a.predict(xs), b.predict(xs), rtol=0, atol=1e-9)
+
+
+def test_importing_cascal_leaves_the_slow_scipy_modules_for_later():
+    """scipy.stats and scipy.optimize take 0.24 and 0.13 s to load: they are imported where
+    used, so every command starts without them (``cascal correct`` of 10 readings: 0.42 s
+    against 0.85 s before this; measured once, not asserted)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, cascal, cascal.cli, cascal.workflow, cascal.study; "
+        "print(sorted(m for m in ('scipy.stats', 'scipy.optimize', 'matplotlib') "
+        "if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
