@@ -283,3 +283,78 @@ def test_pinned_blas_stays_single_threaded_on_every_thread(monkeypatch):
         with ThreadPoolExecutor(3) as workers:
             seen = set().union(*workers.map(task, range(12)))
         assert seen <= {1} and blas_threads() <= {1}
+
+
+def test_a_run_killed_while_creating_the_database_leaves_no_half(tmp_path, monkeypatch):
+    """A review's case: CREATE TABLE committed on its own, so a run killed between the two
+    tables left a folder that every later run refused (schema None)."""
+    from cascal.io.studydb import StudyDB
+
+    def half(self, config):
+        self.con.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT)")
+        raise KeyboardInterrupt  # killed here
+
+    with monkeypatch.context() as m:
+        m.setattr(StudyDB, "_check_or_create", half)
+        with pytest.raises(KeyboardInterrupt):
+            StudyDB(tmp_path, CONFIG.as_dict())
+    again = run_study(tmp_path, trials=2, config=CONFIG, workers=1)
+    assert again.ran == 2
+
+
+def test_a_full_disk_is_no_bad_database(tmp_path):
+    """A review's case: 'database or disk is full' was reported as an unreadable study
+    database (exit 2); it is a write that failed, as for the other outputs."""
+    from cascal.io.studydb import StudyDB
+
+    db = StudyDB(tmp_path, CONFIG.as_dict())
+    db.close()
+    full = sqlite3.OperationalError("database or disk is full")
+    assert isinstance(db._unreadable(full), OSError)
+    assert f"cannot write {db.path}: database or disk is full" in str(db._unreadable(full))
+    assert isinstance(db._unreadable(sqlite3.DatabaseError("file is not a database")), InputError)
+
+
+def test_stale_temporaries_of_a_killed_run_are_swept(tmp_path):
+    import os
+    import time
+
+    run_study(tmp_path, trials=2, config=CONFIG, workers=1)
+    stale, fresh = tmp_path / ".trials.csv.abc123.tmp", tmp_path / ".summary.json.new.tmp"
+    for p in (stale, fresh):
+        p.write_text("half")
+    old = time.time() - 3600
+    os.utime(stale, (old, old))
+    run_study(tmp_path, trials=2, config=CONFIG, workers=1)
+    assert not stale.exists() and fresh.exists()  # a fresh one may be another run's
+
+
+def test_workers_end_when_the_study_process_is_killed(tmp_path):
+    """A review's case: workers of a SIGKILLed study lived on, holding its output pipes."""
+    import os
+    import time
+
+    code = (
+        "import os, multiprocessing\n"
+        "from concurrent.futures import ProcessPoolExecutor\n"
+        "from cascal.study import _start_worker\n"
+        "if __name__ == '__main__':\n"
+        "    ctx = multiprocessing.get_context('spawn')\n"
+        "    ex = ProcessPoolExecutor(1, mp_context=ctx, initializer=_start_worker,\n"
+        "                             initargs=(os.getpid(),))\n"
+        "    print(ex.submit(os.getpid).result(), flush=True)\n"
+        "    os._exit(0)  # as if killed: no shutdown\n"
+    )
+    script = tmp_path / "parent.py"
+    script.write_text(code)
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    child = int(out.stdout.strip())
+    for _ in range(200):  # it notices within half a second; allow 20 s on a busy machine
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(child, 9)
+        pytest.fail(f"worker {child} outlived its parent")

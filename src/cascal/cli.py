@@ -65,7 +65,8 @@ def check_output(
     in messages)."""
     p = Path(path)
     if str(path) == "":
-        raise InputError(f"{option}: expected a file name, got an empty one")
+        what = "folder" if folder else "file"
+        raise InputError(f"{option}: expected a {what} name, got an empty one")
     if is_stdout(path):
         if folder:
             raise InputError(f"{option} {path}: expected a folder, not standard output")

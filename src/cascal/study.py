@@ -12,6 +12,9 @@ import csv
 import io
 import json
 import multiprocessing
+import os
+import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -110,6 +113,7 @@ def run_study(
     summary["redraws"] = int(sum(r.redraws for r in results))
     summary["seconds_per_trial"] = _mean_seconds(results)
     summary["config"] = config.as_dict()
+    _sweep(folder)
     write_text(folder / "trials.csv", trials_table(results, config.methods))
     write_text(folder / "summary.json", json.dumps(summary, indent=2) + "\n")
     from .plots import plot_cost_distribution
@@ -136,6 +140,35 @@ def _check_same_numbers(config: StudyConfig, stored: TrialResult | None, folder:
         )
 
 
+#: Outputs of a study folder, each written to a temporary file and renamed.
+_OUTPUTS = ("trials.csv", "summary.json", "cost_distribution.png", "cost_distribution.svg")
+
+
+def _sweep(folder: Path) -> None:
+    """Remove the temporary files of outputs that a killed run left (over a minute old)."""
+    now = time.time()
+    for name in _OUTPUTS:
+        for tmp in folder.glob(f".{name}.*.tmp"):
+            try:
+                if now - tmp.stat().st_mtime > 60.0:
+                    tmp.unlink()
+            except OSError:
+                pass
+
+
+def _start_worker(parent: int) -> None:
+    """A local worker: BLAS on one thread, and an end of its own when ``parent`` does (a
+    killed study leaves no workers holding its output pipes open)."""
+    pin_blas()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
 def _execute(config, chunks, executor, n_workers):
     """Yield each chunk's results as it completes, on the chosen executor."""
     if not chunks:
@@ -147,7 +180,9 @@ def _execute(config, chunks, executor, n_workers):
     pool = None
     if executor is None:
         ctx = multiprocessing.get_context("spawn")
-        executor = pool = ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=pin_blas)
+        executor = pool = ProcessPoolExecutor(
+            n_workers, mp_context=ctx, initializer=_start_worker, initargs=(os.getpid(),)
+        )
     futures: list[Future] = []
     try:
         futures = [executor.submit(run_chunk, config, c) for c in chunks]

@@ -6,6 +6,7 @@ compared on every reopen, so a folder is never silently reused for other setting
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import sqlite3
@@ -57,7 +58,20 @@ class StudyDB:
             raise
 
     def _open(self, config: dict) -> None:
-        """Check what the file holds before writing to it; create the tables if it is new."""
+        """Check what the file holds before writing to it; create the tables if it is new:
+        one transaction holding the write lock, so that two runs starting together on a
+        new folder do not both create it, and a run killed meanwhile leaves no half."""
+        self.con.execute("BEGIN IMMEDIATE")
+        try:
+            self._check_or_create(config)
+            self.con.commit()
+        except BaseException:
+            self.con.rollback()
+            raise
+        self.con.execute("PRAGMA journal_mode=WAL")
+        self.con.execute("PRAGMA synchronous=NORMAL")
+
+    def _check_or_create(self, config: dict) -> None:
         tables = {
             r[0] for r in self.con.execute("SELECT name FROM sqlite_master WHERE type='table'")
         }
@@ -85,25 +99,24 @@ class StudyDB:
             expected = ["idx", *(f"j_{m}" for m in self.methods), "redraws", "fits", "seconds"]
             if names != expected:
                 raise self._refuse(f"has trial columns {names}, expected {expected}")
-        self.con.execute("PRAGMA journal_mode=WAL")
-        self.con.execute("PRAGMA synchronous=NORMAL")
-        if tables:
             return
         cols = ", ".join(f"j_{m} REAL NOT NULL" for m in self.methods)
-        with self.con:
-            self.con.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT)")
-            self.con.execute(
-                f"CREATE TABLE trials (idx INTEGER PRIMARY KEY, {cols}, "
-                "redraws INTEGER NOT NULL, fits TEXT NOT NULL, seconds TEXT NOT NULL)"
-            )
-            self.con.execute("INSERT INTO meta VALUES ('config', ?)", (wanted,))
-            self.con.execute("INSERT INTO meta VALUES ('schema', ?)", (str(_SCHEMA),))
-            self.con.execute("INSERT INTO meta VALUES ('cascal', ?)", (__version__,))
+        self.con.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT)")
+        self.con.execute(
+            f"CREATE TABLE trials (idx INTEGER PRIMARY KEY, {cols}, "
+            "redraws INTEGER NOT NULL, fits TEXT NOT NULL, seconds TEXT NOT NULL)"
+        )
+        self.con.execute("INSERT INTO meta VALUES ('config', ?)", (wanted,))
+        self.con.execute("INSERT INTO meta VALUES ('schema', ?)", (str(_SCHEMA),))
+        self.con.execute("INSERT INTO meta VALUES ('cascal', ?)", (__version__,))
 
     def _refuse(self, problem: str, hint: str = "choose another --out folder") -> InputError:
         return InputError(f"{self.path} {problem}; {hint}")
 
-    def _unreadable(self, exc: sqlite3.Error) -> InputError:
+    def _unreadable(self, exc: sqlite3.Error) -> Exception:
+        if "disk is full" in str(exc) or "disk I/O error" in str(exc):  # not the file's fault
+            code = errno.ENOSPC if "full" in str(exc) else errno.EIO
+            return OSError(code, f"cannot write {self.path}: {exc}")
         if "locked" in str(exc):
             return InputError(f"{self.path} is in use by another study process ({exc})")
         if "readonly" in str(exc) or "unable to open" in str(exc):
