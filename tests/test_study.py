@@ -218,6 +218,7 @@ def test_progress_draws_a_bar_with_rate_on_a_terminal():
     p = Progress(stream=stream)
     for done in (0, 5, 10):
         p(done, 10)
+    assert p.bar is None  # closed at the last trial: its rate is not the outputs' (a review)
     p.close()
     out = stream.getvalue()
     assert "10/10" in out and "trial/s" in out

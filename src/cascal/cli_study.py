@@ -31,6 +31,8 @@ class Progress:
                 self.start_done = done
             else:
                 self.bar.update(done - self.bar.n)
+            if done >= total:  # the rate of the trials, not of writing the outputs after
+                self.close()
             return
         now = time.perf_counter()
         if self.last < -1e8:
@@ -51,6 +53,7 @@ class Progress:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+            self.bar = None
 
 
 def _cmd_study(args: argparse.Namespace) -> int:
