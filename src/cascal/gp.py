@@ -20,7 +20,7 @@ from scipy.linalg import lapack, solve_triangular
 from . import linalg, surrogate
 from .errors import InputError, NumericalError
 from .kernels import Kernel, Periodic, _Scaled, make_kernel
-from .likelihood import Objective
+from .likelihood import Objective, noiseless
 from .means import Mean, make_mean
 from .noise import Dense, Diagonal, Noise, as_noise
 from .optimize import OptimResult, _safe, maximize, newton_maximize
@@ -679,8 +679,9 @@ def _condition(x, y, kern, m, known, sn2, optimization, factor=None) -> FittedGP
         if known is not None:
             Kt = known.add_to(Kt)
         Kt.flat[:: n + 1] += sn2
-        noiseless = sn2 == 0.0 and (known is None or float(np.min(known.diagonal(n))) <= 0.0)
-        L, jitter = linalg.cholesky(Kt, what="target covariance", noiseless=noiseless)
+        L, jitter = linalg.cholesky(
+            Kt, what="target covariance", noiseless=noiseless(known, n, sn2)
+        )
         alpha = linalg.cho_solve(L, r)
     lml = -0.5 * float(r @ alpha) - 0.5 * linalg.logdet(L) - 0.5 * n * _LOG2PI
     return FittedGP(x, y, kern, m, known, sn2, L, alpha, jitter, lml, optimization)

@@ -19,7 +19,7 @@ from .errors import InputError
 from .kernels import Kernel, Periodic, _Scaled
 from .noise import Noise
 
-__all__ = ["Objective"]
+__all__ = ["Objective", "noiseless"]
 
 _LOG2PI = np.log(2.0 * np.pi)
 #: Upper bound of the noise ratio (noise variance / variance) where the variance is profiled:
@@ -28,6 +28,14 @@ _LOG2PI = np.log(2.0 * np.pi)
 #: optimum at ratios over 10 (32 in a review's case of 100 readings, where a cap at 10
 #: left a length scale below the spacing that fitted the noise as signal).
 RATIO_MAX = 1e7
+
+
+def noiseless(known: Noise | None, n: int, white: float) -> bool:
+    """Whether a target covariance of n points with the known noise ``known`` and a white
+    noise of variance ``white`` holds no noise at some point of its diagonal (a kernel
+    matrix alone there): its Cholesky factor is checked for pivots of round-off
+    (:func:`cascal.linalg.pivots_ok`)."""
+    return white == 0.0 and (known is None or float(np.min(known.diagonal(n))) <= 0.0)
 
 
 class Objective:
@@ -57,9 +65,7 @@ class Objective:
         self.profile = bool(profile)
         self._exact = True
         # no noise on the diagonal (a kernel matrix alone): round-off pivots count as failed
-        self._noiseless = not learn_noise and (
-            self.known_matrix is None or float(np.min(np.diagonal(self.known_matrix))) <= 0.0
-        )
+        self._noiseless = noiseless(known, self.n, 1.0 if learn_noise else 0.0)
         self._last: tuple | None = None  # (theta bytes, L, Kt^-1 r, r^T A^-1 r or None)
         if self.profile and not (isinstance(kernel, _Scaled) and known is None and learn_noise):
             raise ValueError("profiling needs a scaled kernel, no known noise, learned noise")

@@ -287,12 +287,13 @@ def fit_findings(model: CalibrationModel, *, first: int = 0) -> list[BoundHit | 
         if gp.mean.name == "identity" and abs(mean) > OFFSET_RATIO * spread:
             out.append(StageOffset(k, mean, spread))
             continue
-        hits = gp.optimization.at_bounds() if gp.optimization else []
-        hp = gp.hyperparameters
-        if (
-            "noise_ratio" in (gp.optimization.names if gp.optimization else ())
+        opt, hp = gp.optimization, gp.hyperparameters
+        hits = opt.at_bounds() if opt else []
+        if (  # a profiled fit's noise ratio far beyond any map: as at its upper bound
+            opt
+            and "noise_ratio" in opt.names
             and ("noise_ratio", "upper") not in hits
-            and hp["noise_variance"] >= NOISE_ONLY_RATIO * hp.get("variance", np.inf)
+            and hp["noise_variance"] >= NOISE_ONLY_RATIO * hp["variance"]
         ):
             hits.append(("noise_ratio", "upper"))
         for name, side in hits:
