@@ -371,3 +371,43 @@ def test_workers_end_when_the_study_process_is_killed(tmp_path):
     else:
         os.kill(child, 9)
         pytest.fail(f"worker {child} outlived its parent")
+
+
+def test_a_folder_in_use_by_another_run_is_refused(tmp_path):
+    """A review's case: two runs open on one folder both computed its pending trials. Now
+    the second is refused while the first holds the folder, and runs once it has ended."""
+    from cascal.io.studydb import StudyDB
+
+    first = StudyDB(tmp_path, CONFIG.as_dict())
+    try:
+        with pytest.raises(InputError, match="in use by another cascal study run"):
+            run_study(tmp_path, trials=2, config=CONFIG, workers=1)
+        assert first.done() == set()  # the refused run stored nothing
+    finally:
+        first.close()
+    assert run_study(tmp_path, trials=2, config=CONFIG, workers=1).ran == 2
+
+
+def test_cli_study_on_a_folder_in_use_exits_2(tmp_path):
+    from cascal.io.studydb import StudyDB
+
+    held = StudyDB(tmp_path / "s", CONFIG.as_dict())
+    try:
+        p = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "cascal.cli",
+                "study",
+                "--trials",
+                "1",
+                "--out",
+                str(tmp_path / "s"),
+            ],
+            capture_output=True,
+            text=True,
+        )
+    finally:
+        held.close()
+    assert p.returncode == 2, p.stderr
+    assert "in use by another cascal study run" in p.stderr and "Traceback" not in p.stderr

@@ -9,6 +9,7 @@ from __future__ import annotations
 import errno
 import json
 import math
+import os
 import sqlite3
 from collections.abc import Iterable
 from pathlib import Path
@@ -34,7 +35,9 @@ class StudyDB:
     Raises:
         InputError: The folder holds a study with another configuration, or its
             ``study.sqlite`` is not a readable study of this schema (nothing is written
-            to it then), or is in use by another process.
+            to it then), or is in use by another process: a folder takes one open
+            StudyDB at a time (an advisory lock on the folder, held until :meth:`close`
+            or the process ends), so two runs do not compute the same pending trials.
     """
 
     def __init__(self, folder: str | Path, config: dict) -> None:
@@ -44,17 +47,19 @@ class StudyDB:
         self.methods = list(config["methods"])
         if self.path.is_dir():
             raise self._refuse("is a folder, not a study database")
+        self._lock = _lock_folder(self.folder)
         try:
             self.con = sqlite3.connect(self.path)
         except sqlite3.Error as exc:
+            self._unlock()
             raise self._unreadable(exc) from None
         try:
             self._open(config)
         except sqlite3.DatabaseError as exc:
-            self.con.close()
+            self.close()
             raise self._unreadable(exc) from None
         except BaseException:
-            self.con.close()
+            self.close()
             raise
 
     def _open(self, config: dict) -> None:
@@ -204,6 +209,35 @@ class StudyDB:
 
     def close(self) -> None:
         self.con.close()
+        self._unlock()
+
+    def _unlock(self) -> None:
+        if self._lock is not None:
+            os.close(self._lock)  # (closing the descriptor releases its lock)
+            self._lock = None
+
+
+def _lock_folder(folder: Path) -> int | None:
+    """A descriptor of ``folder`` holding an exclusive advisory lock (``flock``), or None
+    where the system has none (Windows). InputError if another process holds it."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not on POSIX
+        return None
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise InputError(
+            f"{folder} is in use by another cascal study run; a study folder takes one run "
+            "at a time: wait for that run to end (it stores every trial, so rerunning then "
+            "resumes), or choose another --out folder"
+        ) from None
+    except OSError:  # a file system without locks: run unlocked, as before
+        os.close(fd)
+        return None
+    return fd
 
 
 def _values(obj: object) -> list:
