@@ -881,6 +881,14 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cascal`` console script; returns the exit status."""
+    try:  # Ctrl-C while the subcommands' modules load (NumPy, SciPy: a few tenths of a s)
+        return _main(argv)
+    except KeyboardInterrupt:
+        print("cascal: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv: Sequence[str] | None) -> int:
     args = _parser().parse_args(join_negative(list(sys.argv[1:] if argv is None else argv)))
     func: Callable[[argparse.Namespace], int] = args.func
     to_stdout = is_stdout(getattr(args, "output", None))

@@ -299,3 +299,27 @@ def test_restarts_beyond_the_cap_are_refused(tmp_path):
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert "argument --restarts: expected at most 100, got 101" in res.stderr
     assert not (tmp_path / "m.json").exists()
+
+
+def test_ctrl_c_while_the_command_starts_ends_without_a_traceback(tmp_path):
+    """A review's case: Ctrl-C in the first 0.3 s, while the package imported NumPy and
+    SciPy, printed a traceback. The package now loads its modules on first use, so the
+    console script reaches ``main`` at once, and ``main`` catches the interrupt wherever
+    it comes while the subcommands load. Here SIGINT arrives as the parser is built."""
+    import signal
+    import subprocess
+    import sys
+
+    code = (
+        "import os, signal, sys, cascal.cli as c\n"
+        "assert 'numpy' not in sys.modules, 'the package imported NumPy'\n"
+        "build = c._parser\n"
+        "def parser():\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
+        "    return build()\n"
+        "c._parser = parser\n"
+        "sys.exit(c.main(['info', 'm.json']))\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert p.returncode == 128 + signal.SIGINT, p.stderr
+    assert p.stderr == "cascal: interrupted\n"
