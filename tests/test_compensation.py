@@ -168,3 +168,27 @@ def test_generated_c_matches_the_library(tmp_path, periodic):
     assert [int(s) for s in status] == outside.astype(int).tolist()
     got = np.array([float(v) for v in corrected])
     assert np.array_equal(got, want, equal_nan=True)
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="needs a C compiler")
+def test_two_tables_of_one_name_do_not_hide_each_other(tmp_path):
+    """A review's case: axes exported to ``ax1/comp.h`` and ``ax2/comp.h`` had one include
+    guard, so the second header was skipped in silence and ax2 used ax1's table. The guard
+    now names the content: the same header twice compiles, two different ones do not."""
+    first = c_header(compensation_table(_smooth(1e-3, 4.0), 0.1, 0.9, 1e-8), "comp", ["a"])
+    second = c_header(compensation_table(_smooth(2e-3, 3.0), 0.1, 0.9, 1e-8), "comp", ["b"])
+    for folder, text in (("ax1", first), ("ax2", second), ("again", first)):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "comp.h").write_text(text)
+
+    def compiles(*headers: str) -> subprocess.CompletedProcess:
+        includes = "".join(f'#include "{h}/comp.h"\n' for h in headers)
+        (tmp_path / "main.c").write_text(
+            f"{includes}int main(void) {{ return comp_N > 0 ? 0 : 1; }}\n"
+        )
+        cmd = ["cc", "-std=c99", "-Wall", "-Werror", "-c", "main.c", "-o", "main.o"]
+        return subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True)
+
+    assert compiles("ax1", "again").returncode == 0  # one table, included twice
+    clash = compiles("ax1", "ax2")
+    assert clash.returncode != 0 and "comp_CORRECTION" in clash.stderr

@@ -435,3 +435,27 @@ def test_a_prefix_of_another_kernel_loads_and_a_long_unit_is_refused_when_fitted
     assert kernels == ["SquaredExp", "Matern52"]
     with pytest.raises(InputError, match="unit: expected 1 to 20 printable characters"):
         fit_model(stages[:1], n_restarts=1, unit="micrometre per metre (um/m)")
+
+
+def test_atomic_write_keeps_a_replaced_files_mode_and_names_a_full_device(tmp_path):
+    """A review's cases: replacing a 0600 file made it 0644 (a private model readable by
+    all); a link to /dev/full ended with "No space left on device", naming no file."""
+    import os
+    import stat
+
+    from cascal.io import atomic
+
+    private = tmp_path / "private.h"
+    private.write_text("old")
+    os.chmod(private, 0o600)
+    atomic.write_text(private, "new")
+    assert private.read_text() == "new" and stat.S_IMODE(private.stat().st_mode) == 0o600
+    fresh = atomic.write_text(tmp_path / "fresh.h", "x")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(fresh.stat().st_mode) == 0o666 & ~umask
+    if os.path.exists("/dev/full"):
+        link = tmp_path / "full.h"
+        link.symlink_to("/dev/full")
+        with pytest.raises(OSError, match=f"cannot write {link}: No space left on device"):
+            atomic.write_text(link, "x" * 100_000)

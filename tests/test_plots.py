@@ -44,3 +44,23 @@ def test_cost_medians_are_written_without_exponents():
     ax = plot_cost_distribution(costs).axes[0]
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     assert labels == ["bayes (median 80 µm)", "lut (median 1530 µm)"]
+
+
+def test_file_names_and_units_are_drawn_as_written_and_ticks_carry_no_offset():
+    """A review's cases: ``dev$^$.csv`` (or a unit ``$^$``) ended the drawing with a
+    mathtext parse error, and ``a$x$b`` was drawn as maths; a correction of -100 m had
+    tick labels 0.04 ... -0.08 under a small "-1e2"."""
+    import io
+
+    r = np.linspace(0.0, 1.0, 50)
+    u = np.full(50, 1e-6)
+    c = compare(r, r, u, r - 100.0 + 1e-7 * r, u)
+    fig = plot_change(c, scale=1.0, unit="$^$", names=("a$x$b.csv", "dev$^$.csv"))
+    fig.savefig(io.BytesIO(), format="png")  # drawn: no parse error
+    ax = fig.axes[0]
+    assert ax.get_ylabel() == "change of correction [$^$]"
+    assert ax.title.get_parse_math() is False and ax.yaxis.label.get_parse_math() is False
+    assert ax.yaxis.get_major_formatter().get_useOffset() is False
+    texts = [t.get_text().replace("\N{MINUS SIGN}", "-") for t in ax.get_yticklabels()]
+    ticks = [float(t) for t in texts if t]
+    assert ticks and min(ticks) < -99.0  # the values themselves, no offset to add

@@ -7,7 +7,12 @@ calibration map that is not the identity.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+from typing import TypeVar
+
 import numpy as np
+from matplotlib import rc_context
 from matplotlib.figure import Figure
 
 from .cascade import FittedCascade
@@ -16,6 +21,7 @@ from .planning import Plan, variance_after
 from .verification import Comparison, Verification
 
 __all__ = [
+    "figure_style",
     "plot_cascade",
     "plot_change",
     "plot_cost_distribution",
@@ -24,12 +30,32 @@ __all__ = [
     "plot_verification",
 ]
 
+#: Text and axes of cascal's figures: file names and units are drawn as written (a ``$``
+#: is no maths; ``dev$^$.csv`` had ended the drawing with a parse error), and tick labels
+#: carry no offset (a correction of -100 m had read as 0.04 under a small "-1e2").
+_STYLE = {"text.parse_math": False, "axes.formatter.useoffset": False}
+
+F = TypeVar("F", bound=Callable)
+
+
+def figure_style(draw: F) -> F:
+    """Decorator: ``draw`` makes its text and axes in cascal's figure style (:data:`_STYLE`)."""
+
+    @functools.wraps(draw)
+    def styled(*args, **kwargs):
+        with rc_context(_STYLE):
+            return draw(*args, **kwargs)
+
+    return styled  # type: ignore[return-value]
+
+
 #: A plan's figure numbers this many of its first proposals.
 _NUMBERED = 12
 #: A verification figure draws U as a band from this many check points, else error bars.
 _BAND_POINTS = 50
 
 
+@figure_style
 def plot_stage(
     gp: FittedGP,
     *,
@@ -99,6 +125,7 @@ def plot_stage(
     return ax.figure
 
 
+@figure_style
 def plot_cascade(
     fitted: FittedCascade,
     *,
@@ -142,6 +169,7 @@ def plot_cascade(
     return fig
 
 
+@figure_style
 def plot_cost_distribution(
     costs: dict[str, object], *, fig: Figure | None = None, scale: float = 1e6, unit: str = "µm"
 ) -> Figure:
@@ -179,6 +207,7 @@ def plot_cost_distribution(
     return fig
 
 
+@figure_style
 def plot_plan(
     plan: Plan,
     testbed: FittedGP,
@@ -262,6 +291,7 @@ def plot_plan(
     return fig
 
 
+@figure_style
 def plot_verification(
     v: Verification,
     *,
@@ -328,6 +358,7 @@ def plot_verification(
     return fig
 
 
+@figure_style
 def plot_change(
     c: Comparison,
     *,

@@ -19,7 +19,7 @@ from ._version import __version__
 from .errors import CascalError
 from .gp import Z95
 from .io.modelfile import CalibrationModel
-from .plots import plot_change, plot_plan, plot_verification
+from .plots import figure_style, plot_change, plot_plan, plot_verification
 from .reportdata import CurveView, StageView, correction_curve, stage_views
 from .screening import LEVEL, Screening
 from .verification import Comparison, Verification
@@ -53,6 +53,7 @@ def display_scale(unit: str, magnitude: float) -> tuple[float, str]:
     return 1.0, unit
 
 
+@figure_style
 def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> Figure:
     """One stage: above, the data and the fit as corrections (more accurate reading minus
     reading); below, the residuals about the fit with the fit's 95 % band and the 95 % band
@@ -109,6 +110,7 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
     return fig
 
 
+@figure_style
 def correction_figure(curve: CurveView, *, unit: str, period: float | None = None) -> Figure:
     """Final correction (corrected minus device reading) and, below, its expanded
     uncertainty U = 2u as a band about the correction."""

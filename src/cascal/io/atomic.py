@@ -44,8 +44,10 @@ def is_stdout(path: object) -> bool:
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     """Call ``write(tmp_path)`` and rename the result onto ``path``; nothing half-written.
 
-    A symbolic link stays and its target is replaced; a device or FIFO (a named pipe) is
-    written in place, since renaming a file onto it would replace it. Standard output
+    A symbolic link stays and its target is replaced; a replaced file keeps its permission
+    bits (a new one gets the usual ones); a device or FIFO (a named pipe) is written in
+    place, since renaming a file onto it would replace it. An OSError names ``path``
+    (a full disk's error names no file). Standard output
     (:func:`is_stdout`) gets the finished content copied to it where it stands, so a file
     it appends to keeps what it held.
 
@@ -61,8 +63,12 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     except OSError:
         mode = None
     if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
-        write(str(dest))  # a device or a FIFO (/dev/stdout, a pipe): written in place
+        try:  # a device or a FIFO (/dev/stdout, a pipe): written in place
+            write(str(dest))
+        except OSError as exc:
+            raise _naming(exc, dest, (str(dest), None)) from None
         return dest
+    keep = stat.S_IMODE(mode) if mode is not None and stat.S_ISREG(mode) else None
     if dest.is_symlink():  # replace the file the link points at, and keep the link
         dest = Path(os.path.realpath(dest))
     try:
@@ -73,22 +79,26 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     os.close(fd)
     try:
         write(tmp)
-        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the usual permissions
+        os.chmod(tmp, 0o666 & ~_UMASK if keep is None else keep)  # mkstemp makes 0600
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())  # the content is on disk before the name points at it
         os.replace(tmp, dest)
     except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
-        # (a full disk's error while writing names no file, but has its errno)
-        if (
-            isinstance(exc, OSError)
-            and exc.errno is not None
-            and exc.filename in (tmp, str(dest), None)
-        ):
-            raise OSError(exc.errno, f"cannot write {dest}: {exc.strerror}") from None
+        if isinstance(exc, OSError):
+            raise _naming(exc, dest, (tmp, str(dest), None)) from None
         raise
     return dest
+
+
+def _naming(exc: OSError, dest: Path, names: tuple) -> OSError:
+    """``exc`` as "cannot write DEST: reason" where it concerns ``dest`` (its file name is
+    one of ``names``, or none) and has an errno; else ``exc`` itself (a message-only
+    error keeps its text)."""
+    if exc.errno is not None and exc.filename in names:
+        return OSError(exc.errno, f"cannot write {dest}: {exc.strerror}")
+    return exc
 
 
 def _to_stdout(path: str | os.PathLike, write: Callable[[str], None]) -> Path:

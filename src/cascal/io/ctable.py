@@ -9,6 +9,7 @@ of a multiply and an add into one rounding), it gives the same doubles.
 
 from __future__ import annotations
 
+import hashlib
 import re
 
 import numpy as np
@@ -49,7 +50,7 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
         about: Lines for the header's opening comment (provenance, unit, tolerance); a
             ``*/`` and ``/*`` in them are broken up, so the comment cannot end early.
     """
-    p, guard = c_identifier(name), f"CASCAL_TABLE_{name}_H"
+    p = c_identifier(name)
     safe = [line.replace("*/", "* /").replace("/*", "/ *") for line in about]
     intro = "\n".join(f" * {line}".rstrip() for line in safe)
     if table.period is not None:
@@ -62,7 +63,7 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
             f"    else if (t > {p}_N - 1) t = {p}_N - 1;\n"
         )
         extra = f"static const double {p}_PERIOD = {table.period!r};\n"
-        include = "#include <math.h>\n\n"
+        include = "#include <math.h> /* fmod: link with -lm */\n\n"
     else:
         reduce = (
             f"    double t = (reading - {p}_LO) / {p}_STEP;\n"
@@ -77,20 +78,20 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
         else "Returns 0 inside the calibrated range, 1 outside\n * it or for a NaN reading "
         "(the nearest end's correction is then held)."
     )
-    return f"""/*
+    comment = f"""/*
 {intro}
  *
  * corrected = reading + correction(reading), the correction interpolated linearly between
  * {table.n} equally spaced readings from {p}_LO in steps of {p}_STEP.
- * Compiled as ISO C (e.g. -std=c99, or with -ffp-contract=off: no fused multiply-add),
- * {p}_correct gives cascal's doubles to the last bit; with contraction, within one rounding.
+ * Compiled as ISO C (e.g. -std=c99, or with -ffp-contract=off: no fused multiply-add)
+ * where doubles are evaluated in double precision (FLT_EVAL_METHOD 0: SSE2, every 64-bit
+ * target; not the x87 unit), {p}_correct gives cascal's doubles to the last bit; with
+ * contraction or x87, within one rounding.
  * Infinite and NaN readings need IEEE arithmetic: not with -ffast-math or
  * -ffinite-math-only.
  */
-#ifndef {guard}
-#define {guard}
-
-{include}#define {p}_N {table.n}
+"""
+    body = f"""{include}#define {p}_N {table.n}
 
 static const double {p}_LO = {table.lo!r};
 static const double {p}_STEP = {table.step!r};
@@ -109,8 +110,11 @@ static inline int {p}_correct(double reading, double *corrected)
     return status;
 }}
 
-#endif /* {guard} */
 """
+    # The guard names the content too: two different tables of one name, included
+    # together, fail to compile (duplicate definitions) instead of one being skipped.
+    guard = f"CASCAL_TABLE_{p}_{hashlib.sha256(body.encode()).hexdigest()[:12].upper()}_H"
+    return f"{comment}#ifndef {guard}\n#define {guard}\n\n{body}#endif /* {guard} */\n"
 
 
 def table_csv(table: CompensationTable) -> str:

@@ -41,6 +41,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "CalibrationModel",
     "load_model",
+    "load_model_checksum",
     "model_to_dict",
     "save_model",
     "schema_version",
@@ -205,6 +206,12 @@ def load_model(path: str | os.PathLike) -> CalibrationModel:
             version (a newer one asks for a newer cascal), edited after it was written
             (checksum), or inconsistent.
     """
+    return load_model_checksum(path)[0]
+
+
+def load_model_checksum(path: str | os.PathLike) -> tuple[CalibrationModel, str]:
+    """:func:`load_model`, and the checksum (sha256, hex) the file carries, verified: one
+    read of the file (a pipe can be read once)."""
     name = str(path)
     try:
         text = Path(path).read_text(encoding="utf-8")
@@ -216,8 +223,9 @@ def load_model(path: str | os.PathLike) -> CalibrationModel:
         raise ModelFileError(f"{name}: not a valid model file: nested too deeply") from None
 
 
-def _parse(text: str, name: str) -> CalibrationModel:
-    """The model in a model file's text; ModelFileError naming ``name`` if it is none."""
+def _parse(text: str, name: str) -> tuple[CalibrationModel, str]:
+    """The model in a model file's text and its checksum; ModelFileError naming ``name``
+    if it is none."""
     try:
         doc = json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
@@ -245,7 +253,7 @@ def _parse(text: str, name: str) -> CalibrationModel:
     except SchemaError as exc:
         raise ModelFileError(f"{name}: does not match model schema {version}: {exc}") from None
     try:
-        return _from_dict(doc)
+        return _from_dict(doc), value
     except (CascalError, ValueError, IndexError) as exc:
         raise ModelFileError(f"{name}: inconsistent model file: {exc}") from None
 
