@@ -64,3 +64,43 @@ def test_three_points_that_interpolate_at_any_noise_are_named(tmp_path):
     assert fit_findings(model) == [BoundHit(0, "noise_ratio", "lower", 3)]
     hp = model.fitted.models[0].hyperparameters
     assert hp["noise_variance"] / hp["variance"] == pytest.approx(1e-10, rel=1e-3)
+
+
+def test_a_loaded_model_shows_the_findings_of_its_fit(tmp_path, smooth):
+    """A review's case: the report and ``info`` of a model from three reference points
+    said nothing of what ``fit`` had warned, since a model file stores no search bounds.
+    Loading puts them back (``gp.restore_bounds``): the same bounds, to the last bit, and
+    the same findings as the fresh fit's, for bounds hit at either end, the noise floor
+    searched again (and kept, or moved), and none."""
+    from cascal.io.modelfile import load_model, save_model
+
+    x, y = smooth
+    rng = np.random.default_rng(5)
+    xf = np.linspace(0.0, 1.0, 30)
+    cases = {
+        "few": ([0.0, 0.5, 1.0], [0.0001, 0.4990, 1.0002]),
+        "ref3": (
+            [-0.045103644571, 0.343952608537, 0.978728600451],
+            [-0.000043643525, 0.402522016101, 1.000138897997],
+        ),
+        "ok": (x, y),
+        "fine": (xf, xf + 1e-3 * np.sin(3 * xf) + 1e-12 * rng.standard_normal(30)),
+        "far": (x, y + 100.0),
+    }
+    xd = np.linspace(0.05, 0.9, 30)
+    device = (xd + 2e-4 * np.cos(4 * xd), xd)  # (device readings, test-bed readings)
+    floors = set()
+    for name, (a, b) in cases.items():
+        for method in ("bayes", "homoscedastic"):
+            stages = [_stage(tmp_path / f"{name}.csv", a, b), _stage(tmp_path / "dev.csv", *device)]
+            fresh = fit_model(stages, method=method, n_restarts=2)
+            path = save_model(tmp_path / f"{name}_{method}.json", fresh)
+            loaded = load_model(path)
+            assert fit_findings(loaded) == fit_findings(fresh), (name, method)
+            for k, gp in enumerate(fresh.fitted.models):
+                want, got = gp.optimization, loaded.fitted.models[k].optimization
+                assert got.names == want.names
+                assert np.array_equal(got.bounds, want.bounds), (name, method, k)
+                floors.add(bool(want.bounds[-1, 0] < np.log(1e-10) - 1.0))
+    assert floors == {True, False}  # both kinds of noise floor were restored
+    assert fit_findings(load_model(tmp_path / "few_bayes.json"))[0].points == 3

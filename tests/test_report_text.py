@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import html
+
+import numpy as np
+
 from cascal.demo import rotary_demo
 from cascal.report import build_report
 from cascal.workflow import fit_model
@@ -40,3 +44,25 @@ def test_uncertainties_are_also_given_in_the_figures_unit():
     rotary = fit_model([ref, dev], kernel="periodic", period=360.0, unit="deg", n_restarts=1)
     text = build_report(rotary, source="rotary.json")
     assert re.search(r"Largest u over the calibrated range: [-+.e\d]+ deg \([.\d]+ arcsec\)", text)
+
+
+def test_the_report_repeats_what_fit_warned_of():
+    """A review's cases: the report of a model from three reference points, or of a
+    homoscedastic cascade, read as a clean bill of health while ``cascal fit`` had warned
+    that u is likely too small. Its Cautions list the fit's findings (the search bounds
+    restored on loading) and the homoscedastic caveat; a clean model has none."""
+    from cascal.cli import HOMOSCEDASTIC_U
+    from cascal.io.data import StageData
+    from cascal.workflow import fit_findings
+
+    ref, dev = demo_stages()
+    keep = np.array([0, ref.x.size // 3, ref.x.size - 1])
+    three = StageData(ref.x[keep], ref.y[keep], None, ref.counts[keep], ref.rows[keep], ref.source)
+    model = fit_model([three, dev], n_restarts=2)
+    (finding,) = fit_findings(model)
+    page = build_report(model)
+    assert "Cautions" in page and "3 points cannot tell the readings" in page
+    homo = build_report(fit_model([ref, dev], method="homoscedastic", n_restarts=2))
+    assert "Cautions" in homo and html.escape(HOMOSCEDASTIC_U) in homo
+    assert "Cautions" not in build_report(fit_model([ref, dev], n_restarts=2))
+    assert finding.stage == 0 and finding.points == 3

@@ -31,9 +31,10 @@ def input_status(
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    from .cli import model_lines, warn
+    from .cli import model_lines, warn, warn_homoscedastic
+    from .cli_screening import report_findings
     from .io.modelfile import load_model, schema_version
-    from .workflow import summarize_device
+    from .workflow import fit_findings, summarize_device
 
     model = load_model(args.model)
     n = len(model.fitted.models)
@@ -66,6 +67,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
     print(f"Correction over it: RMS {s['rms_correction']:.3g} {model.unit}, {largest}")
     for file in changed:
         warn("info", f"{file} is not the file this model was fitted from (its SHA-256 differs)")
+    report_findings("info", fit_findings(model), [s.file for s in model.sources], model.unit)
+    warn_homoscedastic("info", model)
     return 0
 
 

@@ -20,10 +20,10 @@ from scipy.linalg import lapack, solve_triangular
 from . import linalg, surrogate
 from .errors import InputError, NumericalError
 from .kernels import Kernel, Periodic, _Scaled, make_kernel
-from .likelihood import Objective, noiseless
+from .likelihood import Objective, noiseless, search_bounds, theta_names
 from .means import Mean, make_mean
 from .noise import Dense, Diagonal, Noise, as_noise
-from .optimize import OptimResult, _safe, maximize, newton_maximize
+from .optimize import BOUND_TOL, OptimResult, _safe, maximize, newton_maximize
 from .validation import as_positions, check_count, check_pair, frozen
 
 __all__ = ["FittedGP", "Objective", "Posterior", "fit_gp", "log_marginal_likelihood"]
@@ -624,6 +624,38 @@ def _below_noise_floor(obj: Objective, b: np.ndarray, found: OptimResult) -> Opt
         starts=found.starts + run.starts,
         bounds=wide if run.value - found.value >= NOISE_FLOOR_GAIN else b,
     )
+
+
+def restore_bounds(gp: FittedGP) -> FittedGP:
+    """``gp`` with the bounds and names of its search put back into ``gp.optimization``,
+    which a model file does not store, so that
+    :meth:`~cascal.optimize.OptimResult.at_bounds` (and the fit's findings) work on a
+    loaded model. For a fit as :class:`~cascal.Cascade` makes them (the default bounds,
+    a learned noise): the bounds are those :func:`fit_gp` derives from the data, with the
+    noise floor :data:`NOISE_FLOOR_DROP` times lower where the stored optimum lies below
+    the first and its run from there gained :data:`NOISE_FLOOR_GAIN` or more (its last
+    start). Unchanged where the stored optimum does not fit those bounds."""
+    opt = gp.optimization
+    if opt is None or opt.bounds is not None:
+        return gp
+    profile = isinstance(gp.kernel, _Scaled) and gp.noise is None
+    r = gp.y - gp.mean(gp.x)
+    try:
+        b = search_bounds(gp.x, r, gp.kernel, gp.noise, True, profile)
+    except InputError:
+        return gp
+    if b.shape[0] != opt.theta.size:
+        return gp
+    wide = b.copy()
+    wide[-1, 0] -= np.log(NOISE_FLOOR_DROP)
+    if opt.theta[-1] < b[-1, 0] - BOUND_TOL and len(opt.starts) > 1:
+        first = max(s.value for s in opt.starts[:-1])
+        if opt.starts[-1].value - first >= NOISE_FLOOR_GAIN:
+            b = wide
+    if np.any(opt.theta < wide[:, 0] - BOUND_TOL) or np.any(opt.theta > b[:, 1] + BOUND_TOL):
+        return gp
+    names = theta_names(gp.kernel, True, profile)
+    return replace(gp, optimization=replace(opt, bounds=b, names=names))
 
 
 def _probes(dim: int) -> list[np.ndarray]:

@@ -73,9 +73,7 @@ class Objective:
     @property
     def names(self) -> tuple[str, ...]:
         """Names of the entries of ``theta`` (``noise_ratio``: noise_variance / variance)."""
-        if self.profile:
-            return ("length_scale", "noise_ratio")
-        return tuple(self.kernel.names) + (("noise_variance",) if self.learn_noise else ())
+        return theta_names(self.kernel, self.learn_noise, self.profile)
 
     @property
     def dim(self) -> int:
@@ -315,44 +313,66 @@ class Objective:
 
     def bounds(self, user: dict[str, tuple[float, float]] | None = None) -> np.ndarray:
         """Finite log-space bounds (dim, 2) scaled to the data; ``user`` overrides by name."""
-        x, r = self.x, self.r
-        xs = np.sort(x)
-        span = float(xs[-1] - xs[0]) or 1.0
-        gaps = xs[1:] - xs[:-1]
-        gaps = gaps[gaps > 0]  # the distinct positions' gaps
-        gap = float(gaps.min()) if gaps.size else span
-        n = r.size  # the variance (as np.var), else the mean square, else 1
-        v = float(np.square(r - r.mean()).sum()) / n or float(np.square(r).sum()) / n or 1.0
-        if self.known_matrix is not None:
-            v = max(v, float(np.mean(np.diagonal(self.known_matrix))))
-        rows: dict[str, tuple[float, float]] = {}
-        for name, leaf in zip(self.kernel.names, _leaves(self.kernel), strict=True):
-            if name.rsplit("_", 2)[-2:] == ["length", "scale"]:
-                periodic = isinstance(leaf, Periodic)  # its length scale is dimensionless
-                rows[name] = (1e-2, 1e2) if periodic else (max(0.5 * gap, 1e-4 * span), 1e2 * span)
-            else:  # variances and constants, in the target unit squared
-                rows[name] = (1e-6 * v, 1e4 * v)
-        rows["noise_variance"] = (1e-10 * v, 10.0 * v)
-        for name, lohi in (user or {}).items():
-            if name not in rows:
-                raise InputError(f"bounds: unknown hyperparameter {name!r}; known: {list(rows)}")
-            try:
-                lo, hi = (float(v) for v in lohi)
-            except (TypeError, ValueError):
-                raise InputError(f"bounds: {name}: expected (lower, upper), got {lohi!r}") from None
-            rows[name] = (lo, hi)
-        if self.profile:
-            (l_lo, l_hi) = rows["length_scale"]
-            out = [(l_lo, l_hi), (1e-10, RATIO_MAX)]
-        else:
-            out = [rows[name] for name in self.kernel.names]
-            if self.learn_noise:
-                out.append(rows["noise_variance"])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            b = np.log(np.asarray(out, dtype=float))
-        if not np.all(np.isfinite(b)) or np.any(b[:, 0] > b[:, 1]):
-            raise InputError(f"bounds: expected 0 < lower <= upper, got {out}")
-        return b
+        return search_bounds(
+            self.x, self.r, self.kernel, self.known, self.learn_noise, self.profile, user
+        )
+
+
+def theta_names(kernel: Kernel, learn_noise: bool, profile: bool) -> tuple[str, ...]:
+    """Names of the entries of :class:`Objective`'s ``theta``."""
+    if profile:
+        return ("length_scale", "noise_ratio")
+    return tuple(kernel.names) + (("noise_variance",) if learn_noise else ())
+
+
+def search_bounds(
+    x: np.ndarray,
+    r: np.ndarray,
+    kernel: Kernel,
+    known: Noise | None,
+    learn_noise: bool,
+    profile: bool,
+    user: dict[str, tuple[float, float]] | None = None,
+) -> np.ndarray:
+    """Finite log-space bounds (dim, 2) of :class:`Objective`'s ``theta`` for readings ``x``
+    (n,) and residuals ``r`` (n,), scaled to the data; ``user`` overrides by name."""
+    xs = np.sort(x)
+    span = float(xs[-1] - xs[0]) or 1.0
+    gaps = xs[1:] - xs[:-1]
+    gaps = gaps[gaps > 0]  # the distinct positions' gaps
+    gap = float(gaps.min()) if gaps.size else span
+    n = r.size  # the variance (as np.var), else the mean square, else 1
+    v = float(np.square(r - r.mean()).sum()) / n or float(np.square(r).sum()) / n or 1.0
+    if known is not None:
+        v = max(v, float(np.mean(known.diagonal(r.size))))
+    rows: dict[str, tuple[float, float]] = {}
+    for name, leaf in zip(kernel.names, _leaves(kernel), strict=True):
+        if name.rsplit("_", 2)[-2:] == ["length", "scale"]:
+            periodic = isinstance(leaf, Periodic)  # its length scale is dimensionless
+            rows[name] = (1e-2, 1e2) if periodic else (max(0.5 * gap, 1e-4 * span), 1e2 * span)
+        else:  # variances and constants, in the target unit squared
+            rows[name] = (1e-6 * v, 1e4 * v)
+    rows["noise_variance"] = (1e-10 * v, 10.0 * v)
+    for name, lohi in (user or {}).items():
+        if name not in rows:
+            raise InputError(f"bounds: unknown hyperparameter {name!r}; known: {list(rows)}")
+        try:
+            lo, hi = (float(v) for v in lohi)
+        except (TypeError, ValueError):
+            raise InputError(f"bounds: {name}: expected (lower, upper), got {lohi!r}") from None
+        rows[name] = (lo, hi)
+    if profile:
+        (l_lo, l_hi) = rows["length_scale"]
+        out = [(l_lo, l_hi), (1e-10, RATIO_MAX)]
+    else:
+        out = [rows[name] for name in kernel.names]
+        if learn_noise:
+            out.append(rows["noise_variance"])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b = np.log(np.asarray(out, dtype=float))
+    if not np.all(np.isfinite(b)) or np.any(b[:, 0] > b[:, 1]):
+        raise InputError(f"bounds: expected 0 < lower <= upper, got {out}")
+    return b
 
 
 def _leaves(kernel: Kernel) -> list[Kernel]:

@@ -214,6 +214,7 @@ def build_report(
     parts = [
         f"<h1>{e(title)}</h1>",
         _table(["", ""], summary, header=False),
+        *_cautions(model),
         "<h2>Input files</h2>",
         _table(
             ["stage", "file", "rows", "rows left out", "points", "columns", "SHA-256"],
@@ -280,6 +281,23 @@ def build_report(
         '<!doctype html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>{e(title)}</title><style>{_CSS}</style></head>\n<body>\n{body}\n</body></html>\n"
     )
+
+
+def _cautions(model: CalibrationModel) -> list[str]:
+    """What ``cascal fit`` warned of, as far as the model shows it: the findings of
+    :func:`~cascal.workflow.fit_findings` and the u of a homoscedastic cascade."""
+    from .cli import HOMOSCEDASTIC_U
+    from .cli_screening import finding_line
+    from .workflow import fit_findings
+
+    files = [s.file for s in model.sources]
+    lines = [finding_line(f, files[f.stage], model.unit) for f in fit_findings(model)]
+    if model.method == "homoscedastic" and len(model.fitted.models) > 1:
+        lines.append(HOMOSCEDASTIC_U)
+    if not lines:
+        return []
+    items = "".join(f"<li>{html.escape(line)}</li>" for line in lines)
+    return ['<h2 class="warn">Cautions</h2>', f"<ul>{items}</ul>"]
 
 
 def _count(n: int, noun: str) -> str:

@@ -100,3 +100,16 @@ def test_info_refuses_a_damaged_model(linear_model, tmp_path):
     assert "Traceback" not in res.stderr and res.stdout == ""
     res = run_cascal("info", tmp_path / "missing.json")
     assert res.returncode == 2 and "cannot read the model file" in res.stderr
+
+
+def test_info_repeats_what_fit_warned_of(linear_files, tmp_path):
+    """A review's case: ``info`` of a homoscedastic cascade said nothing of its u, which
+    ``fit`` had warned of; it now warns the same, and of a loaded model's findings."""
+    files, _ = linear_files
+    model = tmp_path / "h.json"
+    fit = run_cascal("fit", *files, "-o", model, "--method", "homoscedastic")
+    assert fit.returncode == 0, fit.stderr
+    res = run_cascal("info", model)
+    assert res.returncode == 0, res.stderr
+    warned = [line for line in fit.stderr.splitlines() if "homoscedastic" in line]
+    assert warned and res.stderr.splitlines() == [w.replace("fit:", "info:") for w in warned]

@@ -28,7 +28,7 @@ import numpy as np
 from ..baselines import OffsetTable
 from ..cascade import Cascade, FittedCascade, Stage
 from ..errors import CascalError, InputError, ModelFileError
-from ..gp import FittedGP
+from ..gp import FittedGP, restore_bounds
 from ..kernels import Constant, Kernel, Matern32, Matern52, Periodic, Product, SquaredExp, Sum
 from ..means import Mean
 from ..noise import Dense, Diagonal, Noise, NoiseSum
@@ -382,7 +382,7 @@ def _gp_from(m: dict, x: np.ndarray, targets: np.ndarray) -> FittedGP:
         optimization=None if m["optimization"] is None else _opt_from(m["optimization"]),
     )
     _check_weights(gp)
-    return gp
+    return restore_bounds(gp)
 
 
 def _check_weights(gp: FittedGP) -> None:
