@@ -68,3 +68,22 @@ def test_auto_decimals():
     assert auto_decimals([np.array([359.0])]) == 10
     assert auto_decimals([np.array([0.5])], np.array([1e-12, np.nan])) == 15
     assert auto_decimals([np.array([np.nan])]) == 12
+
+
+@given(
+    st.floats(-1e6, 1e6, allow_nan=False),
+    st.floats(1e-6, 1e6, allow_nan=False),
+    st.integers(3, 12),
+)
+@settings(max_examples=300, deadline=None)
+def test_a_range_is_printed_rounded_inward(lo, width, digits):
+    """A review's case: a report printed the range ending at 0.949381593 as ending at
+    0.949382, which holds readings that ``correct`` flags as outside."""
+    from cascal.io.csvout import range_text
+
+    hi = lo + width
+    a, b = (float(v) for v in range_text(lo, hi, digits).strip("[]").split(", "))
+    assert lo <= a and b <= hi  # inside
+    tol = 10.0 ** (1 - digits)
+    assert a - lo <= tol * abs(lo) and hi - b <= tol * abs(hi)  # by one digit at most
+    assert range_text(0.0980742049123, 0.9493815934) == "[0.098074205, 0.949381593]"

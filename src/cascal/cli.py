@@ -104,6 +104,33 @@ def check_outputs(output: str | None, plot: str | None, inputs: Sequence[str | P
         raise InputError(f"--plot {plot}: the same file as -o; give two names")
 
 
+def load_checked(model: str, **outputs: str | None):
+    """The model file ``model``, loaded and checked by :func:`check_not_inputs`."""
+    from .io.modelfile import load_model
+
+    loaded = load_model(model)
+    check_not_inputs(model, loaded, **outputs)
+    return loaded
+
+
+def check_not_inputs(model: str, loaded, **outputs: str | None) -> None:
+    """Refuse an output (by option name: ``o=...``, ``plot=...``; None for none) that is
+    one of the files the model ``loaded`` from file ``model`` was fitted from, found as
+    ``cascal info`` finds them: writing it would destroy that file."""
+    from .cli_info import input_paths
+
+    for option, out in outputs.items():
+        if out is None or is_stdout(out):
+            continue
+        for src in loaded.sources:
+            for path in input_paths(src.file, Path(model).parent):
+                if same_file(out, path):
+                    flag = f"-{option}" if len(option) == 1 else f"--{option}"
+                    raise InputError(
+                        f"{flag} {out}: is the input file {src.file} of {model}; not overwritten"
+                    )
+
+
 def add_outputs(p: argparse.ArgumentParser, stem: str, table: str, figure: str, func) -> None:
     """Register the ``-o STEM.csv`` table (``table``: what it holds), the ``--plot
     STEM.png`` figure (``figure``: what it draws) and the handler ``func`` of a command."""
@@ -265,20 +292,19 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     """Correct device readings with a model; write reading, corrected, u, U, out_of_range."""
     import numpy as np
 
-    from .io.csvout import auto_decimals, write_columns
+    from .io.csvout import auto_decimals, range_text, write_columns
     from .io.data import read_readings
-    from .io.modelfile import load_model
     from .workflow import correct
 
     check_output(args.output, inputs=(args.model, args.readings))
-    model = load_model(args.model)
+    model = load_checked(args.model, o=args.output)
     table = read_readings(args.readings, column=args.column)
     warn_homoscedastic("correct", model)
     c = correct(model, table.columns[0])
     out = c.out_of_range
     n_out = int(np.count_nonzero(out))
     lo, hi = model.calibrated_range
-    where = f"outside the calibrated range [{lo:.9g}, {hi:.9g}] {model.unit}"
+    where = f"outside the calibrated range {range_text(lo, hi)} {model.unit}"
     if n_out and args.out_of_range == "error":
         first = int(table.rows[np.argmax(out)])
         raise InputError(f"{n_out} reading(s) {where}", file=args.readings, row=first)
@@ -410,11 +436,10 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
 def _cmd_report(args: argparse.Namespace) -> int:
     """Write a self-contained HTML report of a model file."""
     from .io.atomic import write_text
-    from .io.modelfile import load_model
     from .report import build_report
 
     check_output(args.output, inputs=(args.model,))
-    model = load_model(args.model)
+    model = load_checked(args.model, o=args.output)
     path = write_text(args.output, build_report(model, source=Path(args.model).name))
     print(f"Report written to {path}")
     return 0
@@ -522,6 +547,19 @@ def _level(args: argparse.Namespace) -> float:
     return LEVEL if args.level is None else args.level
 
 
+def hyperparameter_unit(name: str, unit: str, periodic: bool) -> str:
+    """The unit of a hyperparameter, with a leading space (empty where dimensionless): a
+    length scale and a period in ``unit`` (the periodic kernel's length scale is relative
+    to its period), variances in ``unit`` squared."""
+    if name.endswith("length_scale"):
+        return "" if periodic else f" {unit}"
+    if name.endswith("period"):
+        return f" {unit}"
+    if name.endswith("variance"):
+        return f" {unit}\N{SUPERSCRIPT TWO}"
+    return ""
+
+
 def model_lines(model) -> list[str]:
     """One line per stage (file, rows, points, hyperparameters), then the calibrated
     range."""
@@ -530,14 +568,17 @@ def model_lines(model) -> list[str]:
         zip(model.fitted.models, model.sources, model.counts, strict=True)
     ):
         hp = getattr(m, "hyperparameters", {})
-        text = ", ".join(f"{name} {v:.4g}" for name, v in hp.items()) or "lookup table"
+        unit = {name: hyperparameter_unit(name, model.unit, model.periodic) for name in hp}
+        text = ", ".join(f"{n} {v:.4g}{unit[n]}" for n, v in hp.items()) or "lookup table"
         mean = getattr(m, "mean", None)
         if mean is not None and mean.name == "offset":
             text += f", prior mean offset {mean.offset:+.6g} {model.unit}"
         left = f", {rows_text(src.excluded)} left out" if src.excluded else ""
         lines.append(f"Stage {k} ({src.file}: {src.rows} rows{left}, {counts.size} points): {text}")
+    from .io.csvout import range_text
+
     lo, hi = model.calibrated_range
-    span = f"full turn (period {model.period:g})" if model.periodic else f"[{lo:.9g}, {hi:.9g}]"
+    span = f"full turn (period {model.period:g})" if model.periodic else range_text(lo, hi)
     return [*lines, f"Calibrated device range: {span} {model.unit}"]
 
 

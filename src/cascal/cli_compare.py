@@ -11,14 +11,14 @@ __all__ = ["add_compare_parser"]
 def _cmd_compare(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import EXIT_NOT_CONFORMING, check_outputs, warn
+    from .cli import EXIT_NOT_CONFORMING, check_outputs, load_checked, warn
     from .io.csvout import auto_decimals, write_columns
-    from .io.modelfile import load_model
     from .verification import BAND_LEVEL
     from .workflow import compare_models
 
     check_outputs(args.output, args.plot, inputs=(args.old, args.new))
-    old, new = load_model(args.old), load_model(args.new)
+    old = load_checked(args.old, o=args.output, plot=args.plot)
+    new = load_checked(args.new, o=args.output, plot=args.plot)
     c = compare_models(old, new)
     s, unit = c.summary(), old.unit
     span = (

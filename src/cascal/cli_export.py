@@ -11,7 +11,7 @@ __all__ = ["add_export_parser"]
 
 def _cmd_export(args: argparse.Namespace) -> int:
     from . import __version__
-    from .cli import check_output
+    from .cli import check_not_inputs, check_output
     from .errors import InputError
     from .io.atomic import write_text
     from .io.ctable import c_header, c_identifier, table_csv
@@ -29,6 +29,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
         raise InputError(f"--name: names the identifiers of a C header; -o {out} is CSV")
     name = _identifier(out.stem) if args.name is None else c_identifier(args.name)
     model, checksum = load_model_checksum(args.model)  # one read: a pipe can be read once
+    check_not_inputs(args.model, model, o=args.output)
     table = compensation(model, args.tolerance)
     unit = model.unit
     kind = "one period, wrapped" if table.period is not None else "the calibrated range"

@@ -7,7 +7,7 @@ import argparse
 import hashlib
 from pathlib import Path
 
-__all__ = ["add_info_parser", "input_status"]
+__all__ = ["add_info_parser", "input_paths", "input_status"]
 
 
 def input_status(
@@ -20,14 +20,21 @@ def input_status(
     file's folder) and by its name alone in ``base``, and any of them that matches counts."""
     if str(file).startswith("<") and str(file).endswith(">"):  # CalibrationModel.from_cascade
         return "fitted from arrays in Python, no file", None
-    candidates = [Path(file)]
-    if base is not None and not Path(file).is_absolute():
-        candidates += [base / file, base / Path(file).name]
-    found = [p for p in dict.fromkeys(candidates) if p.is_file()]
+    found = input_paths(file, base)
     for path in found:
         if hashlib.sha256(path.read_bytes()).hexdigest() == sha256:
             return "unchanged", path
     return ("changed since the fit", found[0]) if found else ("not found", None)
+
+
+def input_paths(file: str | Path, base: Path | None = None) -> list[Path]:
+    """The existing files that a model's input ``file`` may be: the path as given to the
+    fit, from here, from ``base`` (the model file's folder) and by its name alone in
+    ``base``."""
+    candidates = [Path(file)]
+    if base is not None and not Path(file).is_absolute():
+        candidates += [base / file, base / Path(file).name]
+    return [p for p in dict.fromkeys(candidates) if p.is_file()]
 
 
 def _cmd_info(args: argparse.Namespace) -> int:

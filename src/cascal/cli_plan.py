@@ -17,18 +17,17 @@ INTERVAL_OPTIONS = ("--reach", "--where")
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import check_outputs, warn
+    from .cli import check_outputs, load_checked, warn
     from .cli_study import Progress
     from .errors import InputError
     from .io.csvout import auto_decimals, write_columns
-    from .io.modelfile import load_model
     from .planning import MAX_MEASUREMENTS
     from .workflow import plan_measurements
 
     check_outputs(args.output, args.plot, inputs=(args.model,))
     if args.n > MAX_MEASUREMENTS:
         raise InputError(f"-n: expected at most {MAX_MEASUREMENTS} measurements, got {args.n}")
-    model = load_model(args.model)
+    model = load_checked(args.model, o=args.output, plot=args.plot)
     reach = [_interval(r, "--reach") for r in args.reach] if args.reach else None
     where = None if args.where is None else _interval(args.where, "--where")
     progress = Progress(unit="measurement") if args.n > _QUIET else None

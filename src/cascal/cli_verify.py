@@ -16,18 +16,24 @@ _TOO_LARGE = 3.0
 def _cmd_verify(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import EXIT_NOT_CONFORMING, HUGE, check_outputs, warn, warn_homoscedastic
+    from .cli import (
+        EXIT_NOT_CONFORMING,
+        HUGE,
+        check_outputs,
+        load_checked,
+        warn,
+        warn_homoscedastic,
+    )
     from .errors import InputError
     from .io.csvout import auto_decimals, write_columns
     from .io.data import read_table
-    from .io.modelfile import load_model
     from .verification import expected_within
     from .workflow import verify_model
 
     check_outputs(args.output, args.plot, inputs=(args.model, args.check))
     if args.x_column is not None and args.x_column == args.y_column:
         raise InputError(f"--x-column and --y-column both name {args.x_column!r}; give two")
-    model = load_model(args.model)
+    model = load_checked(args.model, o=args.output, plot=args.plot)
     warn_homoscedastic("verify", model)
     hint = "; choose two by name with --x-column and --y-column"
     table = read_table(args.check, (args.x_column, args.y_column), hint=hint, max_abs=HUGE)

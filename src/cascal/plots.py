@@ -332,7 +332,8 @@ def plot_verification(
     if np.any(out):
         ax.plot(r[out], e[out], "x", color="C3", ms=5, label="outside ±U")
     s = v.summary()
-    title = f"{s['points']} check points: RMS error {s['rms_after'] * scale:.3g} {unit}"
+    points = f"{s['points']} check point{'s' * (s['points'] != 1)}"
+    title = f"{points}: RMS error {s['rms_after'] * scale:.3g} {unit}"
     if s["within_U"] is not None:
         title += f", {100 * s['within_U'] / s['points']:.1f} % within ±U"
     if v.mpe is not None:

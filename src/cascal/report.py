@@ -18,6 +18,7 @@ from matplotlib.figure import Figure
 from ._version import __version__
 from .errors import CascalError
 from .gp import Z95
+from .io.csvout import range_text
 from .io.modelfile import CalibrationModel
 from .plots import figure_style, plot_change, plot_plan, plot_verification
 from .reportdata import CurveView, StageView, correction_curve, stage_views
@@ -196,7 +197,7 @@ def build_report(
     rng = (
         "full turn (period " + _num(model.period) + f" {unit})"
         if model.periodic
-        else f"[{_num(lo)}, {_num(hi)}] {unit}"
+        else f"{range_text(lo, hi)} {unit}"
     )
     summary = [
         ("model file", source or "(in memory)"),
@@ -244,7 +245,12 @@ def build_report(
             + ".</p>"
         )
         if view.hyperparameters:
-            rows = [(n, _num(v)) for n, v in view.hyperparameters.items()]
+            from .cli import hyperparameter_unit
+
+            rows = [
+                (n, _num(v) + hyperparameter_unit(n, unit, model.periodic))
+                for n, v in view.hyperparameters.items()
+            ]
             if view.log_marginal_likelihood is not None:
                 rows.append(("log marginal likelihood", _num(view.log_marginal_likelihood)))
             parts.append(_table(["hyperparameter", "value"], rows))
@@ -307,7 +313,12 @@ def _count(n: int, noun: str) -> str:
 def _screening_html(s: Screening, unit: str, repeats: bool) -> str:
     """The stage's outlier screening: a sentence, and a table of the suspects."""
     level = f"{LEVEL * 100:g} %"
-    also = " The spread of repeated readings is checked by cascal fit." if repeats else ""
+    also = (
+        " Repeated readings are averaged first: their spread is checked by cascal fit (its"
+        " warnings), not here."
+        if repeats
+        else ""
+    )
     if not s.detectable:
         return (
             f"<p>Outlier screening: {s.z.size} points are too few for the leave-one-out check "
@@ -315,8 +326,9 @@ def _screening_html(s: Screening, unit: str, repeats: bool) -> str:
         )
     if not s.suspects:
         return (
-            f"<p>Outlier screening: every point agrees with the others (leave-one-out, |z| "
-            f"below {s.threshold:.2f}, the {level} false-alarm level of the stage).{also}</p>"
+            f"<p>Outlier screening: every point agrees with the others' prediction of it "
+            f"(leave-one-out, |z| below {s.threshold:.2f}, the {level} false-alarm level of the "
+            f"stage).{also}</p>"
         )
     rows = [
         (_num(q.reading), _num(q.target), _num(q.predicted), _num(q.std), f"{q.z:+.1f}")

@@ -25,7 +25,8 @@ def test_info_prints_what_the_model_holds(linear_model):
         head = [i for i, t in enumerate(lines) if t.startswith(f"Stage {k} (")]
         (i,) = head
         ls = gp.hyperparameters["length_scale"]
-        assert f"length_scale {ls:.4g}," in lines[i]
+        assert f"length_scale {ls:.4g} m," in lines[i]
+        assert f"noise_variance {gp.hyperparameters['noise_variance']:.4g} m²" in lines[i]
         lml = gp.log_marginal_likelihood
         assert lines[i + 1] == f"  log marginal likelihood {lml:.6g}, no jitter"
         src = model.sources[k]
@@ -113,3 +114,27 @@ def test_info_repeats_what_fit_warned_of(linear_files, tmp_path):
     assert res.returncode == 0, res.stderr
     warned = [line for line in fit.stderr.splitlines() if "homoscedastic" in line]
     assert warned and res.stderr.splitlines() == [w.replace("fit:", "info:") for w in warned]
+
+
+def test_outputs_never_overwrite_the_models_input_files(linear_files, tmp_path):
+    """A review's case: ``cascal report m.json -o ref.csv`` replaced the reference file the
+    model was fitted from (which ``info`` checks) with HTML. Every command that reads a
+    model refuses to write over its input files, found as ``info`` finds them."""
+    (ref, dev), readings = linear_files
+    ref, dev = (shutil.copy(f, tmp_path / f.name) for f in (ref, dev))
+    model = tmp_path / "m.json"
+    assert run_cascal("fit", ref, dev, "-o", model).returncode == 0
+    before = {p: p.read_bytes() for p in (ref, dev)}
+    cases = [
+        ("report", model, "-o", ref),
+        ("correct", model, readings, "-o", dev),
+        ("export", model, "-o", ref.with_suffix(".csv")),
+        ("plan", model, "-n", "2", "-o", dev),
+        ("verify", model, ref, "-o", dev),
+        ("compare", model, model, "-o", ref),
+    ]
+    for args in cases:
+        res = run_cascal(*args)
+        assert res.returncode == 2, (args, res.stderr)
+        assert "is the input file" in res.stderr and "Traceback" not in res.stderr
+    assert {p: p.read_bytes() for p in (ref, dev)} == before

@@ -112,11 +112,11 @@ def test_report_lists_the_suspects_and_circles_them(spoiled, linear_model):
     (q,) = views[1].screening.suspects
     assert views[0].screening.suspects == ()  # the bad repeat hides in its own point
     text = build_report(model)
-    assert text.count("Outlier screening: every point agrees with the others") == 1
+    assert text.count("Outlier screening: every point agrees with the others' prediction") == 1
     assert "Outlier screening: 1 point the others do not support" in text
     assert f"<td>{q.z:+.1f}</td>" in text and f"<td>{q.reading:.6g}</td>" in text
     clean = build_report(load_model(linear_model))
-    assert clean.count("Outlier screening: every point agrees with the others") == 2
+    assert clean.count("Outlier screening: every point agrees with the others' prediction") == 2
     # The figure circles the suspect at its residual.
     from cascal.report import stage_figure
 
