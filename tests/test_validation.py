@@ -73,9 +73,10 @@ def test_cascade_names_the_stage():
         _cascade(_with(X, 2, np.nan), Y)
     with pytest.raises(InputError, match=r"^testbed y: expected at least|^testbed x: expected"):
         _cascade_top(X[:2], Y[:2])
-    stage = Stage(_with(X, 1, np.inf), Y, name="encoder")
     with pytest.raises(InputError, match=r"^encoder x: expected finite values, got inf"):
-        Cascade([(X, Y), stage])
+        Stage(_with(X, 1, np.inf), Y, name="encoder")  # (refused as it is made)
+    with pytest.raises(InputError, match=r"^encoder: expected x and y of one length, got 6 and 5"):
+        Stage(X, Y[:5], name="encoder")
 
 
 def test_fit_gp_uses_given_names():
@@ -203,3 +204,55 @@ def test_huge_finite_values_are_accepted_and_a_nan_after_them_named():
     np.testing.assert_array_equal(as_positions(big, "x"), big)
     with pytest.raises(InputError, match=r"x: expected finite values, got nan at index 3"):
         as_positions(np.r_[big, np.nan], "x")
+
+
+def test_averaged_repeats_learn_the_noise_of_positions_read_once():
+    """A review's case: aggregate_repeats gives a position read once a known variance of
+    0, to be covered by the learned white noise, but fit_gp took a vector of known noise
+    as all there is, so those readings were fitted as exact: a length scale of 0.019
+    instead of 0.38, an error 22 times larger and RMS error / u of 24. Zeros now leave
+    the noise to learn, as for the cascade; learn_noise=False still interpolates."""
+    from cascal import aggregate_repeats
+
+    rng = np.random.default_rng(0)
+    pos = np.sort(rng.uniform(0, 1, 30))
+    x = np.repeat(pos, np.where(np.arange(30) % 5 == 0, 3, 1))  # every 5th read 3 times
+    truth = lambda t: t + 1e-4 * np.sin(6 * t)  # noqa: E731
+    r = aggregate_repeats(x, truth(x) + 2e-6 * rng.standard_normal(x.size))
+    q = np.linspace(0.05, 0.95, 200)
+    default = fit_gp(r.x, r.y, noise=r.noise)
+    learned = fit_gp(r.x, r.y, noise=r.noise, learn_noise=True)
+    assert default.noise_variance == learned.noise_variance > 0
+    m, s = default.predict(q, return_std=True)
+    err = m - truth(q)
+    assert np.sqrt(np.mean(err**2)) < 3e-6 and np.sqrt(np.mean((err / s) ** 2)) < 3
+    exact = fit_gp(r.x, r.y, noise=r.noise, learn_noise=False)
+    assert exact.noise_variance == 0.0 and "noise_variance" not in exact.optimization.names
+    positive = fit_gp(r.x, r.y, noise=np.full(r.x.size, 4e-12))  # every variance known
+    assert positive.noise_variance == 0.0
+
+
+def test_api_misuse_is_an_input_error():
+    """A review's cases: these escaped as NumPy's or Python's own errors (or a misleading
+    NumericalError), and seed -1 was taken by table-started fits but refused by others."""
+    from cascal import Diagonal, Mean
+
+    x = np.linspace(0, 1, 20)
+    y = x + 1e-3 * np.sin(5 * x)
+    cases = {
+        "x: expected numbers": lambda: fit_gp([[1], [2, 3]], [1, 2]),
+        "seed: expected a whole number": lambda: fit_gp(x, y, seed=-1),
+        "seed: expected a whole": lambda: fit_gp(x, y, kernel=SquaredExp() * 1.0, seed=1.5),
+        "combines with kernels and numbers": lambda: SquaredExp() * "a",
+        "noise variance: expected numbers": lambda: Diagonal("a"),
+        "stage x: expected numbers": lambda: Stage([1, 2, "a"], [1, 2, 3]),
+        "mean offset: expected a finite number": lambda: Mean(1.0, float("nan")),
+    }
+    for words, call in cases.items():
+        with pytest.raises(InputError, match=words):
+            call()
+    rng = np.random.default_rng(1)
+    assert (
+        fit_gp(x, y, seed=rng).log_marginal_likelihood
+        == fit_gp(x, y, seed=0).log_marginal_likelihood
+    )

@@ -48,8 +48,14 @@ class Stage:
     name: str = "stage"
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "x", frozen(self.x))
-        object.__setattr__(self, "y", frozen(self.y))
+        x = as_positions(self.x, f"{self.name} x")
+        y = as_positions(self.y, f"{self.name} y")
+        if x.shape != y.shape:
+            raise InputError(
+                f"{self.name}: expected x and y of one length, got {x.size} and {y.size}"
+            )
+        object.__setattr__(self, "x", frozen(x))
+        object.__setattr__(self, "y", frozen(y))
         if self.noise is not None and np.ndim(self.noise) > 0:
             object.__setattr__(self, "noise", frozen(self.noise))
 

@@ -337,7 +337,9 @@ def fit_gp(
         noise: None (learn a scalar variance), a number or (n,) vector (known variances),
             an (n, n) covariance (known, plus a learned scalar), or a Noise.
         learn_noise: Learn a white-noise variance on top of ``noise``; default: learn it
-            unless ``noise`` is a number or a vector.
+            unless ``noise`` is a number or a vector of positive variances (a zero, as
+            :func:`~cascal.validation.aggregate_repeats` gives a position read once,
+            leaves that reading's noise to learn; pass False to interpolate exactly).
         hyperparameters: Given values by name (``length_scale``, ``variance``,
             ``noise_variance``, ...); nothing is optimised.
         n_restarts: Local optimiser starts: the best local maxima of a likelihood table
@@ -375,11 +377,15 @@ def _fit_gp(
     xa, ya = check_pair(x, y, names)
     n = xa.size
     check_count(n_restarts, "n_restarts", "optimiser starts", 1)
+    if not (seed is None or isinstance(seed, np.random.SeedSequence | np.random.Generator)):
+        check_count(seed, "seed", "seed", 0)  # (refused where a table gives the starts too)
     kern = make_kernel(kernel, period=period)
     m = make_mean(mean, ya, xa)
     known = as_noise(noise, n)
     if learn_noise is None:
-        learn_noise = known is None or not known.is_diagonal
+        # a known variance of 0 says nothing of that reading's noise (aggregate_repeats
+        # gives it to a position read once): learn a white noise for it
+        learn_noise = known is None or not known.is_diagonal or not known.diagonal(n).all()
     if known is None and not learn_noise:
         raise InputError("noise: with learn_noise=False a known noise must be given")
     r = ya - m(xa)

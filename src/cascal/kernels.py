@@ -9,6 +9,7 @@ with ``+`` and ``*``; a number becomes a :class:`Constant`.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -96,7 +97,11 @@ class Kernel:
 
 
 def _as_kernel(k: Kernel | float) -> Kernel:
-    return k if isinstance(k, Kernel) else Constant(float(k))
+    if isinstance(k, Kernel):
+        return k
+    if isinstance(k, numbers.Real) and not isinstance(k, bool):
+        return Constant(float(k))
+    raise InputError(f"a kernel combines with kernels and numbers, not {k!r}")
 
 
 @dataclass(frozen=True, slots=True)

@@ -21,6 +21,12 @@ class Mean:
     slope: float = 1.0
     offset: float = 0.0
 
+    def __post_init__(self) -> None:
+        for name in ("slope", "offset"):
+            v = getattr(self, name)
+            if not (isinstance(v, numbers.Real) and math.isfinite(v)):
+                raise InputError(f"mean {name}: expected a finite number, got {v!r}")
+
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """Prior mean at positions ``x`` (n,), same unit, shape (n,)."""
         x = np.asarray(x, dtype=float)

@@ -57,7 +57,10 @@ class Diagonal(Noise):
     variance: float | np.ndarray = 0.0
 
     def __post_init__(self) -> None:
-        v = np.asarray(self.variance, dtype=float)
+        try:
+            v = np.asarray(self.variance, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError(f"noise variance: expected numbers, got {self.variance!r}") from None
         if v.ndim > 1:
             raise InputError(f"noise variance: expected a number or shape (n,), got {v.shape}")
         if not np.all(np.isfinite(v)) or np.any(v < 0):

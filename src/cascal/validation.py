@@ -26,12 +26,13 @@ MIN_POINTS = 3
 
 def as_positions(a: object, name: str) -> np.ndarray:
     """``a`` as a finite float64 vector, shape (n,); raises :class:`InputError` naming ``name``."""
-    if np.iscomplexobj(a):
-        raise InputError(f"{name}: expected real numbers, got complex ones")
-    try:
-        arr = np.asarray(a, dtype=float)
+    try:  # (a ragged list fails in either call)
+        complex_ = np.iscomplexobj(a)
+        arr = np.asarray(a, dtype=float) if not complex_ else None
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name}: expected numbers, got {type(a).__name__} ({exc})") from None
+    if arr is None:
+        raise InputError(f"{name}: expected real numbers, got complex ones")
     if arr.ndim != 1:
         raise InputError(f"{name}: expected shape (n,), got {arr.shape}")
     finite = np.isfinite(arr)
