@@ -26,7 +26,7 @@ from .gp import FittedGP
 from .io.data import Source, StageData, read_stage
 from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
-from .screening import LEVEL, Screening, Spread, screen, screen_repeats
+from .screening import LEVEL, Screening, Spread, repeats_capped, screen, screen_repeats
 from .tabulate import predict_many
 from .validation import check_count
 from .verification import COVERAGE_FACTOR, Comparison, Verification, compare, verify
@@ -166,6 +166,8 @@ class StageScreening:
         spread: Positions whose repeated readings scatter too much.
         problem: Why the fit's screening failed (a numerical error), or None.
         level: Family-wise false-alarm probability of each check.
+        spread_capped: More repeated positions scatter too much than ``spread`` names
+            (:func:`~cascal.screening.repeats_capped`).
     """
 
     stage: int
@@ -174,6 +176,7 @@ class StageScreening:
     spread: tuple[Spread, ...]
     problem: str | None = None
     level: float = LEVEL
+    spread_capped: bool = False
 
     @property
     def rows(self) -> list[int]:
@@ -212,10 +215,11 @@ def screen_stages(
                 fit = screen(gp, level=level)
             except NumericalError as exc:  # a screening never costs the user the fit
                 problem = str(exc)
-        spread = ()
+        spread, capped = (), False
         if data.raw_x is not None and data.raw_y is not None:
             spread = screen_repeats(data.raw_x, data.raw_y, level=level)
-        out.append(StageScreening(k, data, fit, spread, problem, level))
+            capped = bool(spread) and repeats_capped(data.raw_x, data.raw_y, level=level)
+        out.append(StageScreening(k, data, fit, spread, problem, level, capped))
     return out
 
 

@@ -164,6 +164,22 @@ def test_too_few_points_to_find_an_outlier_is_said(tmp_path):
     assert (tmp_path / "m.json").exists()
 
 
+def test_a_small_stage_is_said_to_be_weakly_screened(tmp_path):
+    """A review's case: 13 points with one reading 100 times the noise off passed the
+    check with "none found" and no caveat (the learned noise grew 29 times to cover it)."""
+    rng = np.random.default_rng(8)
+    x = np.sort(rng.uniform(0.0, 1.0, 13))
+    y = x + 0.01 * np.sin(5 * x) + 1e-4 * rng.standard_normal(13)
+    y[6] += 1e-2
+    stage = tmp_path / "small.csv"
+    cells = "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(x, y, strict=True))
+    stage.write_text("reading,reference\n" + cells)
+    res = run_cascal("fit", stage, "-o", tmp_path / "m.json")
+    assert res.returncode == 0, res.stderr
+    assert f"{stage}: with 13 points the leave-one-out check finds only outliers" in res.stderr
+    assert "no single suspect row, but see the warnings" in res.stdout
+
+
 def test_a_failed_screening_is_a_warning_and_the_model_is_kept(spoiled, monkeypatch):
     from cascal import workflow
     from cascal.cli_screening import screening_lines, screening_summary
