@@ -163,3 +163,23 @@ def test_importing_cascal_leaves_the_slow_scipy_modules_for_later():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_submodules_are_attributes_after_a_plain_import():
+    """A diff review's case: with the package's names loaded on first use, ``cascal.workflow``
+    after a plain ``import cascal`` raised AttributeError (it had worked, as the README's
+    ``cascal.workflow.screen_stages`` needs)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import cascal\n"
+        "print(cascal.workflow.fit_model.__name__, cascal.verification.verify.__name__,\n"
+        "      cascal.compensation.CompensationTable.__name__, cascal.gp.fit_gp is cascal.fit_gp)\n"
+        "try:\n    cascal.no_such_name\nexcept AttributeError as e:\n    print(e)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.splitlines() == [
+        "fit_model verify CompensationTable True",
+        "module 'cascal' has no attribute 'no_such_name'",
+    ]

@@ -104,3 +104,28 @@ def test_a_loaded_model_shows_the_findings_of_its_fit(tmp_path, smooth):
                 floors.add(bool(want.bounds[-1, 0] < np.log(1e-10) - 1.0))
     assert floors == {True, False}  # both kinds of noise floor were restored
     assert fit_findings(load_model(tmp_path / "few_bayes.json"))[0].points == 3
+
+
+def test_older_model_files_keep_no_bounds(tmp_path):
+    """A diff review's case: cascal before 0.4.2 capped the profiled noise ratio at 10, so
+    today's bounds would misstate what its fits hit (a "noise at its upper end" warning
+    went missing). Files of those versions get no bounds back: their findings are the
+    offsets alone, as before."""
+    import json
+
+    from cascal.io import modelfile
+
+    x = [-0.045103644571, 0.343952608537, 0.978728600451]
+    y = [-0.000043643525, 0.402522016101, 1.000138897997]
+    path = modelfile.save_model(
+        tmp_path / "m.json", fit_model([_stage(tmp_path / "ref3.csv", x, y)])
+    )
+    assert fit_findings(modelfile.load_model(path)) == [BoundHit(0, "noise_ratio", "lower", 3)]
+    doc = json.loads(path.read_text())
+    doc["provenance"]["cascal_version"] = "0.4.1"
+    body = {k: v for k, v in doc.items() if k != "checksum"}
+    doc["checksum"]["value"] = modelfile._checksum(body)
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps(doc))
+    loaded = modelfile.load_model(old)
+    assert loaded.fitted.models[0].optimization.bounds is None and fit_findings(loaded) == []

@@ -79,7 +79,7 @@ def test_auto_decimals():
 def test_a_range_is_printed_rounded_inward(lo, width, digits):
     """A review's case: a report printed the range ending at 0.949381593 as ending at
     0.949382, which holds readings that ``correct`` flags as outside."""
-    from cascal.io.csvout import range_text
+    from cascal.text import range_text
 
     hi = lo + width
     a, b = (float(v) for v in range_text(lo, hi, digits).strip("[]").split(", "))
@@ -87,3 +87,16 @@ def test_a_range_is_printed_rounded_inward(lo, width, digits):
     tol = 10.0 ** (1 - digits)
     assert a - lo <= tol * abs(lo) and hi - b <= tol * abs(hi)  # by one digit at most
     assert range_text(0.0980742049123, 0.9493815934) == "[0.098074205, 0.949381593]"
+
+
+def test_a_range_text_keeps_exact_ends_and_order():
+    """A review's cases: ends that nine digits give exactly had printed as 0.100000001 and
+    0.699999999 (their doubles lie a little off the decimal), narrow ranges inverted
+    ([1000.00001, 1000]) and -0.0 as -0."""
+    from cascal.text import range_text
+
+    assert range_text(0.1, 0.7) == "[0.1, 0.7]"
+    assert range_text(-0.0, 360.0) == "[0, 360]"
+    for lo, hi in [(1000.0000001, 1000.0000004), (123456789012.5, 123456789987.0), (1.5, 1.5)]:
+        a, b = (float(v) for v in range_text(lo, hi).strip("[]").split(", "))
+        assert lo <= a <= b <= hi

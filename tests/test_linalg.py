@@ -88,7 +88,7 @@ def test_a_factor_of_round_off_pivots_gets_jitter():
     # it gets jitter now (it had recorded none, with a likelihood 14 nats too high)
     x = np.array([0, 0.1, 0.1, 0.2, 0.3, 0.3, 0.3, 0.5, 0.7, 0.9])
     y = x + 1e-3 * np.sin(10 * x)
-    fit = fit_gp(x, y, noise=0.0, learn_noise=False)
+    fit = fit_gp(x, y, noise=0.0)
     assert fit.jitter > 0
     hp = fit.hyperparameters
     Kt = se(x, x, hp["length_scale"], hp["variance"]) + fit.jitter * np.eye(x.size)

@@ -51,8 +51,8 @@ def test_the_report_repeats_what_fit_warned_of():
     homoscedastic cascade, read as a clean bill of health while ``cascal fit`` had warned
     that u is likely too small. Its Cautions list the fit's findings (the search bounds
     restored on loading) and the homoscedastic caveat; a clean model has none."""
-    from cascal.cli import HOMOSCEDASTIC_U
     from cascal.io.data import StageData
+    from cascal.text import HOMOSCEDASTIC_U
     from cascal.workflow import fit_findings
 
     ref, dev = demo_stages()

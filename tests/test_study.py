@@ -411,3 +411,24 @@ def test_cli_study_on_a_folder_in_use_exits_2(tmp_path):
         held.close()
     assert p.returncode == 2, p.stderr
     assert "in use by another cascal study run" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_the_folder_stays_locked_while_the_outputs_are_written(tmp_path, monkeypatch):
+    """A diff review's case: the lock ended when the trials were stored, so a second run
+    started while the first wrote trials.csv, and the folder ended with one run's summary
+    and the other's figure."""
+    from cascal import study
+    from cascal.io.studydb import StudyDB
+
+    seen = []
+    write = study._write_outputs
+
+    def writing(folder, results, config):
+        with pytest.raises(InputError, match="in use by another cascal study run"):
+            StudyDB(folder, config.as_dict())
+        seen.append(len(results))
+        return write(folder, results, config)
+
+    monkeypatch.setattr(study, "_write_outputs", writing)
+    assert run_study(tmp_path, trials=2, config=CONFIG, workers=1).ran == 2 and seen == [2]
+    StudyDB(tmp_path, CONFIG.as_dict()).close()  # free once the run has ended

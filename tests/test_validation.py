@@ -211,7 +211,8 @@ def test_averaged_repeats_learn_the_noise_of_positions_read_once():
     0, to be covered by the learned white noise, but fit_gp took a vector of known noise
     as all there is, so those readings were fitted as exact: a length scale of 0.019
     instead of 0.38, an error 22 times larger and RMS error / u of 24. Zeros now leave
-    the noise to learn, as for the cascade; learn_noise=False still interpolates."""
+    the noise to learn where they lie among positive ones, as for the cascade; noise=0
+    and learn_noise=False still interpolate."""
     from cascal import aggregate_repeats
 
     rng = np.random.default_rng(0)
@@ -230,6 +231,9 @@ def test_averaged_repeats_learn_the_noise_of_positions_read_once():
     assert exact.noise_variance == 0.0 and "noise_variance" not in exact.optimization.names
     positive = fit_gp(r.x, r.y, noise=np.full(r.x.size, 4e-12))  # every variance known
     assert positive.noise_variance == 0.0
+    hp = {"length_scale": 0.5, "variance": 1e-8}  # noise=0 stays exact (a diff review)
+    for zero in (0.0, np.zeros(r.x.size)):
+        assert fit_gp(r.x, r.y, noise=zero, hyperparameters=hp).noise_variance == 0.0
 
 
 def test_api_misuse_is_an_input_error():
@@ -241,7 +245,7 @@ def test_api_misuse_is_an_input_error():
     y = x + 1e-3 * np.sin(5 * x)
     cases = {
         "x: expected numbers": lambda: fit_gp([[1], [2, 3]], [1, 2]),
-        "seed: expected a whole number": lambda: fit_gp(x, y, seed=-1),
+        "seed: expected a whole number >= 0": lambda: fit_gp(x, y, seed=-1),
         "seed: expected a whole": lambda: fit_gp(x, y, kernel=SquaredExp() * 1.0, seed=1.5),
         "combines with kernels and numbers": lambda: SquaredExp() * "a",
         "noise variance: expected numbers": lambda: Diagonal("a"),

@@ -4,15 +4,14 @@ The public names load on first use (PEP 562), so the ``cascal`` command starts, 
 answers Ctrl-C, before NumPy and SciPy are imported.
 """
 
-from __future__ import annotations
-
-from importlib import import_module
-from typing import TYPE_CHECKING
+from importlib import import_module as _import_module
+from importlib.util import find_spec as _find_spec
+from typing import TYPE_CHECKING as _TYPE_CHECKING
 
 from ._version import __version__
 from .errors import CascalError, InputError, ModelFileError, NumericalError
 
-if TYPE_CHECKING:  # pragma: no cover
+if _TYPE_CHECKING:  # pragma: no cover
     from . import kernels, noise, planning, screening, simulation
     from .baselines import OffsetTable, fit_table
     from .cascade import Cascade, FittedCascade, Stage
@@ -40,10 +39,13 @@ _WHERE = {
 
 
 def __getattr__(name: str) -> object:
+    """A public name, or any submodule (``cascal.workflow``), imported on first use."""
     where = _WHERE.get(name)
+    if where is None and not name.startswith("_") and _find_spec(f"{__name__}.{name}"):
+        where = ""  # a submodule that is not public by name: as after a plain import
     if where is None:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = import_module(f".{name}" if where == "" else where, __name__)
+    value = _import_module(f".{name}" if where == "" else where, __name__)
     if where:
         value = getattr(value, name)
     globals()[name] = value
@@ -51,7 +53,7 @@ def __getattr__(name: str) -> object:
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_WHERE))
+    return sorted({n for n in globals() if not n.startswith("_")} | set(_WHERE) | {"__version__"})
 
 
 __all__ = [

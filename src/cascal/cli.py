@@ -292,8 +292,9 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     """Correct device readings with a model; write reading, corrected, u, U, out_of_range."""
     import numpy as np
 
-    from .io.csvout import auto_decimals, range_text, write_columns
+    from .io.csvout import auto_decimals, write_columns
     from .io.data import read_readings
+    from .text import range_text
     from .workflow import correct
 
     check_output(args.output, inputs=(args.model, args.readings))
@@ -547,22 +548,11 @@ def _level(args: argparse.Namespace) -> float:
     return LEVEL if args.level is None else args.level
 
 
-def hyperparameter_unit(name: str, unit: str, periodic: bool) -> str:
-    """The unit of a hyperparameter, with a leading space (empty where dimensionless): a
-    length scale and a period in ``unit`` (the periodic kernel's length scale is relative
-    to its period), variances in ``unit`` squared."""
-    if name.endswith("length_scale"):
-        return "" if periodic else f" {unit}"
-    if name.endswith("period"):
-        return f" {unit}"
-    if name.endswith("variance"):
-        return f" {unit}\N{SUPERSCRIPT TWO}"
-    return ""
-
-
 def model_lines(model) -> list[str]:
     """One line per stage (file, rows, points, hyperparameters), then the calibrated
     range."""
+    from .text import hyperparameter_unit, range_text
+
     lines = []
     for k, (m, src, counts) in enumerate(
         zip(model.fitted.models, model.sources, model.counts, strict=True)
@@ -575,8 +565,6 @@ def model_lines(model) -> list[str]:
             text += f", prior mean offset {mean.offset:+.6g} {model.unit}"
         left = f", {rows_text(src.excluded)} left out" if src.excluded else ""
         lines.append(f"Stage {k} ({src.file}: {src.rows} rows{left}, {counts.size} points): {text}")
-    from .io.csvout import range_text
-
     lo, hi = model.calibrated_range
     span = f"full turn (period {model.period:g})" if model.periodic else range_text(lo, hi)
     return [*lines, f"Calibrated device range: {span} {model.unit}"]
@@ -625,17 +613,10 @@ def _fleet_csv(results) -> str:
     return buf.getvalue()
 
 
-#: A review's simulations (2000 of the paper's trials): U = 2u of a two-stage
-#: homoscedastic cascade covered 65.8 % of the errors, not 95 %.
-HOMOSCEDASTIC_U = (
-    "u of --method homoscedastic leaves the test bed's correlated error out (the paper's "
-    "Alternative 1): in simulated cascades U = 2u covered 66 % of the errors, not 95 %; "
-    "for u, fit with --method bayes"
-)
-
-
 def warn_homoscedastic(command: str, model) -> None:
     """Say that a homoscedastic model of two or more stages understates u."""
+    from .text import HOMOSCEDASTIC_U
+
     if model.method == "homoscedastic" and len(model.fitted.models) > 1:
         warn(command, HOMOSCEDASTIC_U)
 

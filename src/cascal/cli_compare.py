@@ -13,6 +13,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
     from .cli import EXIT_NOT_CONFORMING, check_outputs, load_checked, warn
     from .io.csvout import auto_decimals, write_columns
+    from .text import range_text
     from .verification import BAND_LEVEL
     from .workflow import compare_models
 
@@ -24,7 +25,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     span = (
         f"one turn (period {old.period:g})"
         if old.periodic
-        else f"their common range [{c.reading[0]:.9g}, {c.reading[-1]:.9g}]"
+        else f"their common range {range_text(c.reading[0], c.reading[-1])}"
     )
     print(
         f"Compared {args.new} (new) with {args.old} (old) over {span} {unit}, "

@@ -16,6 +16,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from .io.atomic import write_text
     from .io.ctable import c_header, c_identifier, table_csv
     from .io.modelfile import load_model_checksum
+    from .text import range_text
     from .workflow import compensation
 
     out = Path(args.output)
@@ -49,7 +50,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     u = "" if table.u is None else f"; smallest u on the nodes {float(table.u.min()):.3g} {unit}"
     print(
         f"Compensation table written to {out}: {table.n} nodes over {kind} "
-        f"[{table.lo:.9g}, {table.hi:.9g}] {unit}, step {table.step:.3g} {unit}; largest "
+        f"{range_text(table.lo, table.hi)} {unit}, step {table.step:.3g} {unit}; largest "
         f"interpolation error {table.error:.3g} {unit} (tolerance {table.tolerance:.3g} {unit}{u})"
     )
     return 0

@@ -7,11 +7,11 @@ import shlex
 
 from .cli import rows_text
 from .screening import LEVEL, min_points
-from .workflow import BoundHit, StageOffset, StageScreening
+from .text import finding_line
+from .workflow import StageScreening
 
 __all__ = [
     "SKIPPED",
-    "finding_line",
     "report_findings",
     "report_screening",
     "screening_lines",
@@ -102,7 +102,8 @@ def screening_lines(check: StageScreening, unit: str) -> list[str]:
             f"{file}: with {fit.z.size} points the leave-one-out check finds only outliers "
             "far beyond the noise, if any (the noise it learns grows to cover them: in a "
             "review's simulated stages of 12 to 15 points, one reading 100 times the noise off "
-            f"was missed in 147 of 150); {FEW_POINTS} or more points let it work"
+            "was missed in 147 of 150); more points, or a map smoother against their spacing, "
+            "make it stronger"
         )
     return lines
 
@@ -138,45 +139,6 @@ def report_screening(command: str, checks: list[StageScreening], unit: str, what
         for line in screening_lines(check, unit):
             warn(command, line)
     print(screening_summary(checks, what))
-
-
-def finding_line(finding: BoundHit | StageOffset, file: str, unit: str) -> str:
-    """What a :func:`~cascal.workflow.fit_findings` finding means for the stage of ``file``."""
-    if isinstance(finding, StageOffset):
-        return (
-            f"{file}: the corrections average {finding.offset:+.6g} {unit}, "
-            f"{abs(finding.offset) / max(finding.spread, 1e-300):.3g} times as much as they "
-            "vary, as when the two sensors' zeros differ; the identity prior mean reaches "
-            "that offset only through the map's variance, which can cost the fit its "
-            "accuracy and u its meaning: fit with --mean offset, or zero the readings"
-        )
-    name = finding.parameter.replace("_", " ")
-    if finding.parameter.endswith("length_scale"):
-        return (
-            f"{file}: the fitted {name} sits at the lower end of its range: the corrections "
-            "vary faster than the points show, or the two columns do not belong together; "
-            "u between the points cannot be trusted"
-        )
-    if finding.parameter in ("noise_variance", "noise_ratio") and finding.side == "upper":
-        return (
-            f"{file}: the learned noise sits at the upper end of its range: the fit takes the "
-            f"readings for noise about the prior mean, and {finding.points} points cannot show "
-            "otherwise; u cannot be trusted: measure more points"
-        )
-    if finding.parameter in ("noise_variance", "noise_ratio"):
-        return (
-            f"{file}: the learned noise sits at the lower end of its range: the fit passes "
-            f"through every point, and {finding.points} points cannot tell the readings' noise "
-            "from the map; u is likely too small: measure more points, or repeat readings "
-            "(their spread gives a known noise)"
-        )
-    why = (
-        "the corrections are larger than the fit can follow"
-        if finding.side == "upper"
-        else "the fit puts every deviation from the prior mean down to noise"
-    )
-    where = finding.side
-    return f"{file}: the fitted {name} sits at the {where} end of its range: {why}; u may be wrong"
 
 
 def report_findings(command: str, findings, files: list[str], unit: str) -> None:

@@ -27,6 +27,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     from .errors import InputError
     from .io.csvout import auto_decimals, write_columns
     from .io.data import read_table
+    from .text import range_text
     from .verification import expected_within
     from .workflow import verify_model
 
@@ -48,7 +49,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     )
     s, unit = v.summary(), model.unit
     lo, hi = model.calibrated_range
-    where = f"the calibrated range [{lo:.9g}, {hi:.9g}] {unit}"
+    where = f"the calibrated range {range_text(lo, hi)} {unit}"
     if s["points"] == 0:
         raise InputError(f"no check point lies inside {where}", file=args.check)
     fig = None

@@ -336,10 +336,12 @@ def fit_gp(
             nothing wraps.
         noise: None (learn a scalar variance), a number or (n,) vector (known variances),
             an (n, n) covariance (known, plus a learned scalar), or a Noise.
-        learn_noise: Learn a white-noise variance on top of ``noise``; default: learn it
-            unless ``noise`` is a number or a vector of positive variances (a zero, as
-            :func:`~cascal.validation.aggregate_repeats` gives a position read once,
-            leaves that reading's noise to learn; pass False to interpolate exactly).
+        learn_noise: Learn a white-noise variance (one, for all readings) on top of
+            ``noise``; default: learn it unless ``noise`` is a number or a vector, except a
+            vector with zeros among positive variances, as
+            :func:`~cascal.validation.aggregate_repeats` gives (0 for a position read
+            once): its zeros say nothing of those readings' noise. ``noise=0`` (or all
+            zeros) interpolates exactly.
         hyperparameters: Given values by name (``length_scale``, ``variance``,
             ``noise_variance``, ...); nothing is optimised.
         n_restarts: Local optimiser starts: the best local maxima of a likelihood table
@@ -378,14 +380,15 @@ def _fit_gp(
     n = xa.size
     check_count(n_restarts, "n_restarts", "optimiser starts", 1)
     if not (seed is None or isinstance(seed, np.random.SeedSequence | np.random.Generator)):
-        check_count(seed, "seed", "seed", 0)  # (refused where a table gives the starts too)
+        if not (isinstance(seed, numbers.Integral) and seed >= 0):  # (also where unused)
+            raise InputError(f"seed: expected a whole number >= 0, got {seed!r}")
     kern = make_kernel(kernel, period=period)
     m = make_mean(mean, ya, xa)
     known = as_noise(noise, n)
     if learn_noise is None:
-        # a known variance of 0 says nothing of that reading's noise (aggregate_repeats
-        # gives it to a position read once): learn a white noise for it
-        learn_noise = known is None or not known.is_diagonal or not known.diagonal(n).all()
+        # zeros among positive variances (aggregate_repeats gives 0 to a position read
+        # once) say nothing of those readings' noise: learn one white noise for all
+        learn_noise = known is None or not known.is_diagonal or _some_zero(known.diagonal(n))
     if known is None and not learn_noise:
         raise InputError("noise: with learn_noise=False a known noise must be given")
     r = ya - m(xa)
@@ -600,6 +603,11 @@ def _restrict(noise: Noise, idx: np.ndarray, n: int) -> Noise:
     if noise.is_diagonal:
         return Diagonal(noise.diagonal(n)[idx])
     return Dense(noise.dense(n)[np.ix_(idx, idx)], atol=np.inf)
+
+
+def _some_zero(v: np.ndarray) -> bool:
+    """Zeros among positive variances ``v`` (n,)."""
+    return bool(np.any(v == 0.0) and np.any(v > 0.0))
 
 
 def _below_noise_floor(obj: Objective, b: np.ndarray, found: OptimResult) -> OptimResult:

@@ -99,8 +99,8 @@ class Kernel:
 def _as_kernel(k: Kernel | float) -> Kernel:
     if isinstance(k, Kernel):
         return k
-    if isinstance(k, numbers.Real) and not isinstance(k, bool):
-        return Constant(float(k))
+    if np.ndim(k) == 0 and isinstance(np.asarray(k).item(), numbers.Real):
+        return Constant(float(k))  # (a number, NumPy's scalars and 0-d arrays too)
     raise InputError(f"a kernel combines with kernels and numbers, not {k!r}")
 
 

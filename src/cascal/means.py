@@ -24,8 +24,10 @@ class Mean:
     def __post_init__(self) -> None:
         for name in ("slope", "offset"):
             v = getattr(self, name)
-            if not (isinstance(v, numbers.Real) and math.isfinite(v)):
+            ok = np.ndim(v) == 0 and isinstance(np.asarray(v).item(), numbers.Real)
+            if not (ok and math.isfinite(v)):
                 raise InputError(f"mean {name}: expected a finite number, got {v!r}")
+            object.__setattr__(self, name, float(v))
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """Prior mean at positions ``x`` (n,), same unit, shape (n,)."""

@@ -59,7 +59,8 @@ class OptimResult:
     def at_bounds(self, tol: float = BOUND_TOL) -> list[tuple[str, str]]:
         """``(name, "lower" | "upper")`` for every parameter of ``theta`` within ``tol`` (log
         units) of its bound: the likelihood would go on rising past it, so the bound, not
-        the data, set that value. Empty when the bounds are unknown (a loaded model)."""
+        the data, set that value. Empty when the bounds are unknown (a model file of cascal
+        before 0.4.2)."""
         if self.bounds is None:
             return []
         names = self.names or tuple(f"theta[{i}]" for i in range(self.theta.size))

@@ -18,11 +18,11 @@ from matplotlib.figure import Figure
 from ._version import __version__
 from .errors import CascalError
 from .gp import Z95
-from .io.csvout import range_text
 from .io.modelfile import CalibrationModel
 from .plots import figure_style, plot_change, plot_plan, plot_verification
 from .reportdata import CurveView, StageView, correction_curve, stage_views
 from .screening import LEVEL, Screening
+from .text import HOMOSCEDASTIC_U, finding_line, hyperparameter_unit, range_text
 from .verification import Comparison, Verification
 from .workflow import MeasurementPlan, plan_measurements
 
@@ -245,8 +245,6 @@ def build_report(
             + ".</p>"
         )
         if view.hyperparameters:
-            from .cli import hyperparameter_unit
-
             rows = [
                 (n, _num(v) + hyperparameter_unit(n, unit, model.periodic))
                 for n, v in view.hyperparameters.items()
@@ -292,8 +290,6 @@ def build_report(
 def _cautions(model: CalibrationModel) -> list[str]:
     """What ``cascal fit`` warned of, as far as the model shows it: the findings of
     :func:`~cascal.workflow.fit_findings` and the u of a homoscedastic cascade."""
-    from .cli import HOMOSCEDASTIC_U
-    from .cli_screening import finding_line
     from .workflow import fit_findings
 
     files = [s.file for s in model.sources]

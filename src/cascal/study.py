@@ -105,10 +105,19 @@ def run_study(
             if progress:
                 progress(done, trials)
         results = [r for r in db.results() if r.index < trials]
-    finally:
-        db.close()
         if client is not None:
             client.close()  # disconnect only: the cluster belongs to the user
+            client = None
+        summary = _write_outputs(folder, results, config)
+    finally:  # the folder's lock is held until its outputs are written
+        db.close()
+        if client is not None:
+            client.close()
+    return StudyOutcome(folder, results, summary, len(pending))
+
+
+def _write_outputs(folder: Path, results: list[TrialResult], config: StudyConfig) -> dict:
+    """Write trials.csv, summary.json and the figure; returns the summary."""
     summary = summarize({m: np.array([r.cost[m] for r in results]) for m in config.methods})
     summary["redraws"] = int(sum(r.redraws for r in results))
     summary["seconds_per_trial"] = _mean_seconds(results)
@@ -121,7 +130,7 @@ def run_study(
     fig = plot_cost_distribution({m: [r.cost[m] for r in results] for m in config.methods})
     save_figure(fig, folder / "cost_distribution.png", dpi=130)
     save_figure(fig, folder / "cost_distribution.svg")
-    return StudyOutcome(folder, results, summary, len(pending))
+    return summary
 
 
 def _check_same_numbers(config: StudyConfig, stored: TrialResult | None, folder: Path) -> None:

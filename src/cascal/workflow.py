@@ -28,6 +28,7 @@ from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
 from .screening import LEVEL, Screening, Spread, repeats_capped, screen, screen_repeats
 from .tabulate import predict_many
+from .text import range_text
 from .validation import check_count
 from .verification import COVERAGE_FACTOR, Comparison, Verification, compare, verify
 
@@ -278,8 +279,9 @@ def fit_findings(model: CalibrationModel, *, first: int = 0) -> list[BoundHit | 
     interpolates; the noise is not estimated); a profiled noise over
     :data:`NOISE_ONLY_RATIO` times the variance counts as at its upper bound. A length
     scale at its upper bound (a straight correction) and a learned noise at its lower bound
-    on top of a known noise are not listed. Bounds are not stored in model files: a loaded
-    model shows offsets only.
+    on top of a known noise are not listed. A model file stores no bounds: loading puts
+    them back for files of cascal 0.4.2 and later (:func:`~cascal.gp.restore_bounds`);
+    an older file's model shows offsets only.
     """
     out: list[BoundHit | StageOffset] = []
     for k in range(first, len(model.fitted.models)):
@@ -373,7 +375,7 @@ def compare_models(
         lo, hi = max(lo_a, lo_b), min(hi_a, hi_b)
         if not lo < hi:
             raise InputError(
-                f"the calibrated ranges [{lo_a:.9g}, {hi_a:.9g}] and [{lo_b:.9g}, {hi_b:.9g}] "
+                f"the calibrated ranges {range_text(lo_a, hi_a)} and {range_text(lo_b, hi_b)} "
                 f"{old.unit} do not overlap: nothing to compare"
             )
         grid = np.linspace(lo, hi, n)

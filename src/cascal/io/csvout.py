@@ -12,34 +12,18 @@ import math
 import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
-from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 from pathlib import Path
 
 import numpy as np
 
 from .atomic import atomic_write
 
-__all__ = ["auto_decimals", "format_columns", "range_text", "write_columns"]
+__all__ = ["auto_decimals", "format_columns", "write_columns"]
 
 #: Above this many rows, CSV text is built on several threads.
 _THREADED_ROWS = 200_000
 #: The four decimal digits of 0..9999 as ASCII, one column per number: shape (4, 10000).
 _DIGITS4T = np.array([list(f"{i:04d}".encode()) for i in range(10000)], dtype=np.uint8).T.copy()
-
-
-def range_text(lo: float, hi: float, digits: int = 9) -> str:
-    """``"[lo, hi]"`` to ``digits`` significant digits, rounded inward: every reading in the
-    printed range lies in the true one (0.949381593 of a range ending at 0.9493815934, not
-    0.949382, which a report had printed for readings then flagged as outside)."""
-
-    def sig(v: float, rounding: str) -> str:
-        d = Decimal(v)
-        if not d.is_finite() or d == 0:
-            return f"{v:g}"
-        q = d.quantize(Decimal(1).scaleb(d.adjusted() - digits + 1), rounding=rounding)
-        return f"{float(q):.{digits}g}"
-
-    return f"[{sig(lo, ROUND_CEILING)}, {sig(hi, ROUND_FLOOR)}]"
 
 
 def auto_decimals(values: Sequence[np.ndarray], u: np.ndarray | None = None) -> int:

@@ -273,8 +273,23 @@ def _check_version(version: Any, name: str) -> None:
         )
 
 
+#: The first cascal whose search bounds are today's (the profiled noise ratio's upper
+#: bound was 10 before): only its model files get their bounds back on loading.
+_BOUNDS_SINCE = (0, 4, 2)
+
+
+def _same_bounds(version: object) -> bool:
+    """Whether a model file written by cascal ``version`` searched in today's bounds."""
+    parts = str(version).split(".")[:3]
+    try:
+        return tuple(int(p) for p in parts) >= _BOUNDS_SINCE
+    except ValueError:  # a development version's suffix, or no version
+        return False
+
+
 def _from_dict(doc: dict) -> CalibrationModel:
     models: list[FittedGP | OffsetTable] = []
+    bounds = _same_bounds(doc["provenance"].get("cascal_version"))
     data, used, counts = [], [], []
     for k, st in enumerate(doc["stages"]):
         x, y = np.array(st["x"], float), np.array(st["y"], float)
@@ -291,6 +306,7 @@ def _from_dict(doc: dict) -> CalibrationModel:
         targets = np.array(m["targets"], float)
         if m["type"] == "gp":
             model = _gp_from(m, x, targets)
+            model = restore_bounds(model) if bounds else model
         else:
             knots, offsets = np.array(m["knots"], float), np.array(m["offsets"], float)
             if knots.size != offsets.size or np.any(np.diff(knots) <= 0):
@@ -382,7 +398,7 @@ def _gp_from(m: dict, x: np.ndarray, targets: np.ndarray) -> FittedGP:
         optimization=None if m["optimization"] is None else _opt_from(m["optimization"]),
     )
     _check_weights(gp)
-    return restore_bounds(gp)
+    return gp
 
 
 def _check_weights(gp: FittedGP) -> None:
