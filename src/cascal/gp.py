@@ -19,7 +19,7 @@ from scipy.linalg import lapack, solve_triangular
 
 from . import linalg, surrogate
 from .errors import InputError, NumericalError
-from .kernels import Kernel, Periodic, _Scaled, make_kernel
+from .kernels import Kernel, Periodic, Sum, _Scaled, make_kernel
 from .likelihood import Objective, noiseless, search_bounds, theta_names
 from .means import Mean, make_mean
 from .noise import Dense, Diagonal, Noise, as_noise
@@ -460,9 +460,48 @@ def _search(
     if off_grid and fill and not ranked:  # (a large stage's windows made such runs)
         t0 = _short_start(obj, b, found.theta)
         extra = [] if t0 is None else [t0]
+    if fill and tabulate and not ranked:
+        extra = extra + _component_starts(obj, b, n_restarts, seed)
     if extra:
         found = _extra_runs(obj, b, found, extra)
     return replace(found, n_candidates=found.n_candidates + ranked) if ranked else found
+
+
+def _component_starts(obj: Objective, b: np.ndarray, n_restarts: int, seed) -> list[np.ndarray]:
+    """Starts for a sum of two scaled kernels (SE, Matern, periodic), learned noise and no
+    known noise: each part fitted alone (its table's search), the other part small, its
+    variance at that fit's noise and its length scale short (e^-1 of the median spacing)
+    or long (the range), the noise 3 log units lower; inside ``b``. The screened search
+    alone ended 0.29 nats low on a review's 20 readings of an SE + Matern 3/2 map (1.7 for
+    another seed), reading the short part as noise. Empty for other kernels."""
+    kern = obj.kernel
+    parts = (getattr(kern, "left", None), getattr(kern, "right", None))
+    if not (
+        isinstance(kern, Sum)
+        and all(isinstance(k, _Scaled) for k in parts)
+        and obj.known is None
+        and obj.learn_noise
+        and obj.n > 2
+    ):
+        return []
+    gaps = np.diff(np.sort(obj.x))
+    gaps = gaps[gaps > 0]
+    if not gaps.size:
+        return []
+    lengths = (math.log(float(np.median(gaps))) - 1.0, math.log(float(gaps.sum())))
+    out = []
+    for i, part in enumerate(parts):
+        alone = Objective(obj.x, obj.r, part.unit(1.0), None, True, profile=True)
+        try:
+            fit = _search(alone, alone.bounds(), n_restarts, seed, tabulate=True, fill=False)
+        except NumericalError:
+            continue
+        ls, var, noise = alone.full_theta(fit.theta)
+        for other in lengths:
+            pair = ([ls, var], [other, noise]) if i == 0 else ([other, noise], [ls, var])
+            t0 = np.array([*pair[0], *pair[1], noise - 3.0])
+            out.append(np.clip(t0, b[:, 0], b[:, 1]))
+    return out
 
 
 def _short_start(obj: Objective, b: np.ndarray, theta: np.ndarray) -> np.ndarray | None:
@@ -500,7 +539,7 @@ def _extra_runs(
             b,
             n_restarts=len(t0s),
             rng=None,
-            value_grad_hess=obj.value_and_derivatives,
+            value_grad_hess=obj.value_and_derivatives if obj.has_hessian else None,
             starts=t0s,
             probes=_probes(obj.dim),
             known=found.starts,
@@ -513,7 +552,8 @@ def _extra_runs(
         )
         if more.value > found.value:
             return replace(found, theta=more.theta, value=more.value)
-    obj.value_and_derivatives(found.theta)  # the latest evaluation again: its factor is kept
+    # the latest evaluation again: its factor is kept
+    (obj.value_and_derivatives if obj.has_hessian else obj.value_and_grad)(found.theta)
     return found
 
 
