@@ -458,8 +458,7 @@ def _search(
         fill=screen,
     )
     if off_grid and fill and not ranked:  # (a large stage's windows made such runs)
-        t0 = _short_start(obj, b, found.theta)
-        extra = [] if t0 is None else [t0]
+        extra = _short_starts(obj, b, found.theta)
     if fill and tabulate and not ranked:
         extra = extra + _component_starts(obj, b, n_restarts, seed)
     if extra:
@@ -524,6 +523,21 @@ def _short_start(obj: Objective, b: np.ndarray, theta: np.ndarray) -> np.ndarray
     if obj.learn_noise:
         t0[1:] = theta[2], theta[2] - 10.0
     return np.minimum(np.maximum(t0, b[:, 0]), b[:, 1])
+
+
+def _short_starts(obj: Objective, b: np.ndarray, theta: np.ndarray) -> list[np.ndarray]:
+    """:func:`_short_start`, and with a learned noise a second start that splits the white
+    noise of ``theta`` between the short kernel (half its variance) and the noise (2 log
+    units lower): on a review's 20 readings with a stage-A-like known noise the first
+    alone ended 0.41 nats low for one seed of three (all noise: a variance at its bound)."""
+    t0 = _short_start(obj, b, theta)
+    if t0 is None:
+        return []
+    if not obj.learn_noise:
+        return [t0]
+    t1 = t0.copy()
+    t1[1:] = theta[2] + math.log(0.5), theta[2] - 2.0
+    return [t0, np.minimum(np.maximum(t1, b[:, 0]), b[:, 1])]
 
 
 def _extra_runs(
