@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.linalg import lapack
 
-from cascal import NumericalError, fit_gp
+from cascal import NumericalError, SquaredExp, fit_gp, log_marginal_likelihood
 from cascal.linalg import (
     JITTER_STEPS,
     cho_solve,
@@ -13,6 +14,7 @@ from cascal.linalg import (
     inverse_diagonal,
     inverse_from_cholesky,
     logdet,
+    pivots_ok,
 )
 from utils import assert_allclose, se
 
@@ -71,7 +73,6 @@ def test_a_factor_of_round_off_pivots_gets_jitter():
     each adding about 18 nats to the likelihood). For a matrix with no noise on its
     diagonal, such a factor counts as failed: jitter is added and recorded, in the fit
     too, whose likelihood is then that of K + jitter."""
-    from scipy.linalg import lapack
 
     a = 1.0 / 3.0  # [[1, a], [a, a^2 + 1 ulp]]: its second pivot is round-off
     A = np.array([[1.0, a], [a, np.nextafter(a * a, 1.0)]])
@@ -141,3 +142,24 @@ def test_logdet_and_inverse(spd):
     assert_allclose(inv, inv.T, rtol=1e-14, atol=1e-18)
     assert_allclose(inv, np.linalg.inv(spd), rtol=1e-10, atol=1e-14)
     assert_allclose(inverse_diagonal(L), np.diag(np.linalg.inv(spd)), rtol=1e-10)
+
+
+def test_a_noiseless_factor_beyond_round_off_conditioning_gets_jitter():
+    """A review's case: 30 points, SE of length scale 0.1 and no noise, condition number
+    6.8e17: the fit's factor passed the pivot check, no jitter was recorded and the
+    likelihood was 30 times off the exact one (-3.9e11 against -1.2e13 in 80-digit
+    arithmetic). A noiseless factor whose reciprocal condition number (dpocon) is below
+    n eps now counts as failed; the likelihood function and the fit agree (that of K plus
+    the recorded jitter)."""
+    rng = np.random.default_rng(1)
+    x = np.sort(rng.uniform(0, 1, 30))
+    y = x + 1e-3 * np.sin(5 * x) + 1e-5 * rng.standard_normal(30)
+    hp = {"length_scale": 0.1, "variance": 1e-6, "noise_variance": 0.0}
+    fit = fit_gp(x, y, hyperparameters=hp)
+    assert fit.jitter == pytest.approx(JITTER_STEPS[0] * 1e-6, rel=1e-12, abs=0)
+    assert (
+        log_marginal_likelihood(x, y, kernel=SquaredExp(0.1, 1e-6)) == fit.log_marginal_likelihood
+    )
+    well = SquaredExp(0.02, 1e-6)(x)  # condition 4.7e4: kept as it is
+    L, jitter = cholesky(well, noiseless=True)
+    assert jitter == 0.0 and pivots_ok(L, well)

@@ -134,11 +134,10 @@ def log_marginal_likelihood(
     if not (isinstance(noise_variance, numbers.Real) and 0.0 <= noise_variance < math.inf):
         raise InputError(f"noise_variance: expected a finite number >= 0, got {noise_variance!r}")
     m = make_mean(mean, ya, xa)
-    obj = Objective(xa, ya - m(xa), kernel, as_noise(noise, len(xa)), learn_noise=True)
-    theta = np.r_[kernel.theta, np.log(max(noise_variance, 1e-300))]
-    if noise_variance == 0.0:
-        obj.learn_noise = False
-        theta = kernel.theta
+    known = as_noise(noise, len(xa))
+    learned = noise_variance > 0.0  # (with none, the round-off checks of a noiseless fit)
+    obj = Objective(xa, ya - m(xa), kernel, known, learn_noise=learned)
+    theta = np.r_[kernel.theta, np.log(noise_variance)] if learned else kernel.theta
     v, g = obj.value_and_grad(theta, grad=eval_gradient)
     return (v, g) if eval_gradient else v
 
