@@ -855,14 +855,9 @@ def test_predictions_do_not_depend_on_blas_threads(monkeypatch):
     np.testing.assert_array_equal(out[0][1], out[1][1])
 
 
-def test_a_sum_of_kernels_also_starts_from_its_parts_fitted_alone():
-    """A review's case: on 20 readings of a smooth map plus a short-scale one, SE + Matern
-    3/2 from screened random starts ended at 182.434 (181.015 for seed 2), reading the
-    short part as noise; a brute-force search found 182.726 in the same bounds. Runs from
-    each part fitted alone (the other part short or long) reach it for every seed."""
-    from cascal import Matern32
-
-    n, amp = 20, 1e-4
+def _two_scales(n: int = 20, amp: float = 1e-4):
+    """A review's data: readings (n,), targets (n,) of a smooth map plus a correlated part
+    of covariance ``A`` (n, n, SE of length scale 0.15) and white noise, in that order."""
     rng = np.random.default_rng(n + int(amp * 1e6))
     x = np.sort(rng.uniform(0, 1, n))
     A = amp**2 * np.exp(-0.5 * (x[:, None] - x[None, :]) ** 2 / 0.15**2)
@@ -871,7 +866,17 @@ def test_a_sum_of_kernels_also_starts_from_its_parts_fitted_alone():
         + 1e-4 * np.sin(8 * x)
         + np.linalg.cholesky(A + 1e-14 * np.eye(n)) @ rng.standard_normal(n)
     )
-    y += 1e-5 * rng.standard_normal(n)  # drawn after the map, as in the review
+    return x, y + 1e-5 * rng.standard_normal(n), A
+
+
+def test_a_sum_of_kernels_also_starts_from_its_parts_fitted_alone():
+    """A review's case: on 20 readings of a smooth map plus a short-scale one, SE + Matern
+    3/2 from screened random starts ended at 182.434 (181.015 for seed 2), reading the
+    short part as noise; a brute-force search found 182.726 in the same bounds. Runs from
+    each part fitted alone (the other part short or long) reach it for every seed."""
+    from cascal import Matern32
+
+    x, y, _ = _two_scales()
     kernel = SquaredExp(0.2, 1e-8) + Matern32(0.05, 1e-10)
     for seed in range(5):
         fit = fit_gp(x, y, kernel=kernel, seed=seed)
@@ -885,16 +890,7 @@ def test_a_short_kernel_can_share_the_white_noise_with_a_dense_known_noise():
     short kernel and the noise: every seed reaches the best (brute force: 182.468585)."""
     from cascal.noise import Dense
 
-    n, amp = 20, 1e-4
-    rng = np.random.default_rng(n + int(amp * 1e6))
-    x = np.sort(rng.uniform(0, 1, n))
-    A = amp**2 * np.exp(-0.5 * (x[:, None] - x[None, :]) ** 2 / 0.15**2)
-    y = (
-        x
-        + 1e-4 * np.sin(8 * x)
-        + np.linalg.cholesky(A + 1e-14 * np.eye(n)) @ rng.standard_normal(n)
-    )
-    y += 1e-5 * rng.standard_normal(n)
+    x, y, A = _two_scales()
     for seed in range(3):
         fit = fit_gp(x, y, kernel="se", noise=Dense(A, atol=1e-20), seed=seed)
         assert fit.log_marginal_likelihood == pytest.approx(182.468585, abs=1e-5)
