@@ -296,7 +296,7 @@ def test_two_bad_positions_do_not_hide_each_other():
     are suspect; the check names as many as its cap allows (one of 10 positions here) and
     says it stopped there. Clean files alarm as before (above, and 1.22 % against
     1.21 % in 12 000 files of six shapes, a session's script)."""
-    from cascal.screening import repeats_capped
+    from cascal.screening import repeats_screening
 
     found_all = capped_all = 0
     for seed in range(20):
@@ -304,9 +304,9 @@ def test_two_bad_positions_do_not_hide_each_other():
         y[[4, 22]] += 20e-4  # positions 1 and 7
         found = screen_repeats(x, y)
         assert len(found) == 1 and found[0].farthest in (4, 22)
-        capped_all += repeats_capped(x, y)
+        capped_all += repeats_screening(x, y)[1]
         wider = screen_repeats(x, y, max_fraction=0.2)
         found_all += sorted(s.farthest for s in wider) == [4, 22]
     assert found_all == 20 and capped_all == 20
     clean = _repeats(np.random.default_rng(0), positions=10, c=3)
-    assert screen_repeats(*clean) == () and not repeats_capped(*clean)
+    assert repeats_screening(*clean) == ((), False)

@@ -267,9 +267,9 @@ def _row_numbers(text: str, spec: str, last: int | None = None) -> set[int]:
 
 def _cmd_fit(args: argparse.Namespace) -> int:
     """Fit stage files (reference end first) and write a model file."""
-    from .cli_screening import SKIPPED, report_findings, report_screening
+    from .cli_screening import SKIPPED, report_screening
     from .io.modelfile import save_model
-    from .workflow import fit_findings, fit_model, screen_stages
+    from .workflow import fit_model, screen_stages
 
     check_output(args.output, inputs=args.stages)
     data = _read_stages(args.stages, args)
@@ -277,9 +277,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     path = save_model(args.output, model)
     print("\n".join(model_lines(model)))
     _report_chain("fit", model.sources)
-    files = [src.file for src in model.sources]
-    report_findings("fit", fit_findings(model), files, model.unit)
-    warn_homoscedastic("fit", model)
+    warn_cautions("fit", model)
     if args.no_screening:
         print(SKIPPED)
     else:
@@ -615,10 +613,18 @@ def _fleet_csv(results) -> str:
 
 def warn_homoscedastic(command: str, model) -> None:
     """Say that a homoscedastic model of two or more stages understates u."""
-    from .text import HOMOSCEDASTIC_U
+    from .text import HOMOSCEDASTIC_U, understates_u
 
-    if model.method == "homoscedastic" and len(model.fitted.models) > 1:
+    if understates_u(model):
         warn(command, HOMOSCEDASTIC_U)
+
+
+def warn_cautions(command: str, model) -> None:
+    """Warn of everything that makes ``model``'s u doubtful (:func:`~cascal.text.caution_lines`)."""
+    from .text import caution_lines
+
+    for line in caution_lines(model):
+        warn(command, line)
 
 
 def warn(command: str, message: str) -> None:

@@ -38,10 +38,9 @@ def input_paths(file: str | Path, base: Path | None = None) -> list[Path]:
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    from .cli import model_lines, warn, warn_homoscedastic
-    from .cli_screening import report_findings
+    from .cli import model_lines, warn, warn_cautions
     from .io.modelfile import load_model, schema_version
-    from .workflow import fit_findings, summarize_device
+    from .workflow import summarize_device
 
     model = load_model(args.model)
     n = len(model.fitted.models)
@@ -74,8 +73,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
     print(f"Correction over it: RMS {s['rms_correction']:.3g} {model.unit}, {largest}")
     for file in changed:
         warn("info", f"{file} is not the file this model was fitted from (its SHA-256 differs)")
-    report_findings("info", fit_findings(model), [s.file for s in model.sources], model.unit)
-    warn_homoscedastic("info", model)
+    warn_cautions("info", model)
     return 0
 
 

@@ -663,6 +663,14 @@ def _some_zero(v: np.ndarray) -> bool:
     return bool(np.any(v == 0.0) and np.any(v > 0.0))
 
 
+def _below_floor(b: np.ndarray) -> np.ndarray:
+    """Log bounds ``b`` (dim, 2) with the learned noise's (the last) lower bound
+    :data:`NOISE_FLOOR_DROP` times lower: a copy."""
+    wide = b.copy()
+    wide[-1, 0] -= np.log(NOISE_FLOOR_DROP)
+    return wide
+
+
 def _below_noise_floor(obj: Objective, b: np.ndarray, found: OptimResult) -> OptimResult:
     """``found``, or where its learned noise (the last parameter) is at its lower bound, a
     run from there with that bound :data:`NOISE_FLOOR_DROP` times lower (never lower in
@@ -673,8 +681,7 @@ def _below_noise_floor(obj: Objective, b: np.ndarray, found: OptimResult) -> Opt
     say that the noise is not estimated."""
     if (obj.names[-1], "lower") not in found.at_bounds():
         return found
-    wide = b.copy()
-    wide[-1, 0] -= np.log(NOISE_FLOOR_DROP)
+    wide = _below_floor(b)
     run = maximize(
         obj.value,
         obj.value_and_grad,
@@ -713,8 +720,7 @@ def restore_bounds(gp: FittedGP) -> FittedGP:
         return gp
     if b.shape[0] != opt.theta.size:
         return gp
-    wide = b.copy()
-    wide[-1, 0] -= np.log(NOISE_FLOOR_DROP)
+    wide = _below_floor(b)
     if opt.theta[-1] < b[-1, 0] - BOUND_TOL and len(opt.starts) > 1:
         first = max(s.value for s in opt.starts[:-1])
         if opt.starts[-1].value - first >= NOISE_FLOOR_GAIN:

@@ -22,7 +22,7 @@ from .io.modelfile import CalibrationModel
 from .plots import figure_style, plot_change, plot_plan, plot_verification
 from .reportdata import CurveView, StageView, correction_curve, stage_views
 from .screening import LEVEL, Screening
-from .text import HOMOSCEDASTIC_U, finding_line, hyperparameter_unit, range_text
+from .text import caution_lines, hyperparameter_unit, range_text
 from .verification import Comparison, Verification
 from .workflow import MeasurementPlan, plan_measurements
 
@@ -288,14 +288,9 @@ def build_report(
 
 
 def _cautions(model: CalibrationModel) -> list[str]:
-    """What ``cascal fit`` warned of, as far as the model shows it: the findings of
-    :func:`~cascal.workflow.fit_findings` and the u of a homoscedastic cascade."""
-    from .workflow import fit_findings
-
-    files = [s.file for s in model.sources]
-    lines = [finding_line(f, files[f.stage], model.unit) for f in fit_findings(model)]
-    if model.method == "homoscedastic" and len(model.fitted.models) > 1:
-        lines.append(HOMOSCEDASTIC_U)
+    """What ``cascal fit`` warned of, as far as the model shows it (:func:`caution_lines`),
+    as a heading and a list; none where there is nothing."""
+    lines = caution_lines(model)
     if not lines:
         return []
     items = "".join(f"<li>{html.escape(line)}</li>" for line in lines)

@@ -39,7 +39,7 @@ __all__ = [
     "Suspect",
     "loo_residuals",
     "min_points",
-    "repeats_capped",
+    "repeats_screening",
     "screen",
     "screen_repeats",
     "threshold",
@@ -279,7 +279,7 @@ def screen_repeats(
     28 % found before). Positions whose pool has no spread (identical repeats everywhere
     else, e.g. a coarse resolution) are not judged. Where more are suspect than
     ``max_fraction`` of the positions (at least one) allows, the first that many are
-    returned and :func:`repeats_capped` says so.
+    returned and :func:`repeats_screening` also says so.
 
     Args:
         x: Readings of the sensor being calibrated, shape (n,); repeats are exactly equal.
@@ -287,20 +287,14 @@ def screen_repeats(
         level: Family-wise false-alarm probability of each round (default 1 %).
         max_fraction: Return at most this share of the repeated positions (at least one).
     """
-    found, _ = _screen_repeats(x, y, level, max_fraction)
-    return found
+    return repeats_screening(x, y, level=level, max_fraction=max_fraction)[0]
 
 
-def repeats_capped(
+def repeats_screening(
     x: np.ndarray, y: np.ndarray, *, level: float = LEVEL, max_fraction: float = MAX_FRACTION
-) -> bool:
-    """Whether :func:`screen_repeats` found more suspect positions than it returns."""
-    return _screen_repeats(x, y, level, max_fraction)[1]
-
-
-def _screen_repeats(
-    x: np.ndarray, y: np.ndarray, level: float, max_fraction: float
 ) -> tuple[tuple[Spread, ...], bool]:
+    """:func:`screen_repeats`, and whether it found more suspect positions than it
+    returns (its cap)."""
     _check_level(level)
     rep = aggregate_repeats(x, y)
     y = np.asarray(y, dtype=float)

@@ -5,7 +5,14 @@ from __future__ import annotations
 
 from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 
-__all__ = ["HOMOSCEDASTIC_U", "finding_line", "hyperparameter_unit", "range_text"]
+__all__ = [
+    "HOMOSCEDASTIC_U",
+    "caution_lines",
+    "finding_line",
+    "hyperparameter_unit",
+    "range_text",
+    "understates_u",
+]
 
 #: A review's simulations (2000 of the paper's trials): U = 2u of a two-stage
 #: homoscedastic cascade covered 65.8 % of the errors, not 95 %.
@@ -90,3 +97,21 @@ def finding_line(finding, file: str, unit: str) -> str:
     )
     where = finding.side
     return f"{file}: the fitted {name} sits at the {where} end of its range: {why}; u may be wrong"
+
+
+def understates_u(model) -> bool:
+    """Whether ``model``'s u leaves the test bed's correlated error out: a homoscedastic
+    cascade of two or more stages (:data:`HOMOSCEDASTIC_U`)."""
+    return model.method == "homoscedastic" and len(model.fitted.models) > 1
+
+
+def caution_lines(model) -> list[str]:
+    """What makes ``model``'s u doubtful, as far as the model shows it, one line each: the
+    findings of :func:`~cascal.workflow.fit_findings` named by stage file, then
+    :data:`HOMOSCEDASTIC_U` where it applies. What ``fit`` warns of, and ``info`` and the
+    report repeat."""
+    from .workflow import fit_findings
+
+    files = [s.file for s in model.sources]
+    lines = [finding_line(f, files[f.stage], model.unit) for f in fit_findings(model)]
+    return [*lines, HOMOSCEDASTIC_U] if understates_u(model) else lines

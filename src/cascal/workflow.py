@@ -26,7 +26,7 @@ from .gp import FittedGP
 from .io.data import Source, StageData, read_stage
 from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
-from .screening import LEVEL, Screening, Spread, repeats_capped, screen, screen_repeats
+from .screening import LEVEL, Screening, Spread, repeats_screening, screen
 from .tabulate import predict_many
 from .text import range_text
 from .validation import check_count
@@ -168,7 +168,7 @@ class StageScreening:
         problem: Why the fit's screening failed (a numerical error), or None.
         level: Family-wise false-alarm probability of each check.
         spread_capped: More repeated positions scatter too much than ``spread`` names
-            (:func:`~cascal.screening.repeats_capped`).
+            (:func:`~cascal.screening.repeats_screening`).
     """
 
     stage: int
@@ -218,8 +218,7 @@ def screen_stages(
                 problem = str(exc)
         spread, capped = (), False
         if data.raw_x is not None and data.raw_y is not None:
-            spread = screen_repeats(data.raw_x, data.raw_y, level=level)
-            capped = bool(spread) and repeats_capped(data.raw_x, data.raw_y, level=level)
+            spread, capped = repeats_screening(data.raw_x, data.raw_y, level=level)
         out.append(StageScreening(k, data, fit, spread, problem, level, capped))
     return out
 
