@@ -129,3 +129,17 @@ def test_older_model_files_keep_no_bounds(tmp_path):
     old.write_text(json.dumps(doc))
     loaded = modelfile.load_model(old)
     assert loaded.fitted.models[0].optimization.bounds is None and fit_findings(loaded) == []
+
+
+def test_files_before_044_with_a_product_kernel_keep_no_bounds():
+    """cascal 0.4.4 bounds a product's second factor's variance as a number, no longer by
+    the data's variance: a product's bounds are today's only in files of 0.4.4 and later,
+    other kernels' since 0.4.2."""
+    from cascal.io.modelfile import _same_bounds
+    from cascal.kernels import Periodic, SquaredExp
+
+    se, per = SquaredExp(1.0, 1.0), Periodic(1.0, 1.0, period=360.0)
+    for kernel, since in ((se, "0.4.2"), (se + per, "0.4.2"), (se * per, "0.4.4")):
+        assert _same_bounds(since, kernel) and _same_bounds("1.0.0", kernel)
+        assert not _same_bounds("0.4.1", kernel) and not _same_bounds("0.4.4rc1", kernel)
+    assert not _same_bounds("0.4.3", se + se * per) and _same_bounds("0.4.3", se + per)

@@ -894,3 +894,50 @@ def test_a_short_kernel_can_share_the_white_noise_with_a_dense_known_noise():
     for seed in range(3):
         fit = fit_gp(x, y, kernel="se", noise=Dense(A, atol=1e-20), seed=seed)
         assert fit.log_marginal_likelihood == pytest.approx(182.468585, abs=1e-5)
+
+
+def _quasi_periodic_turn(n: int, seed: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` readings at random angles over a turn (degrees) with an error of size
+    ``scale`` (a third harmonic that decays over the turn, a first one) and noise."""
+    rng = np.random.default_rng(seed)
+    x = np.sort(rng.uniform(0, 360, n))
+    t = np.radians(x)
+    e = np.sin(3 * t) * np.exp(-x / 300) + 0.3 * np.cos(t)
+    return x, x + scale * e + scale * 0.02 * rng.standard_normal(n)
+
+
+def test_a_product_of_kernels_reaches_data_of_any_scale():
+    """Every variance of a product was bounded by the data's: on micrometre readings
+    (variance about 1e-13) two factors could not multiply up to the data's scale, and SE x
+    periodic ended at 263.168, below the periodic kernel alone (291.072). A 60-start
+    L-BFGS-B in today's bounds (the second factor's variance a number of 1e-6 to 1e4)
+    found 291.102205; the fit reaches it for every seed, from each factor fitted alone."""
+    from cascal.likelihood import search_bounds
+
+    x, y = _quasi_periodic_turn(20, 1, 1e-6)
+    kernel = SquaredExp(50.0, 1.0) * Periodic(1.0, 1.0, period=360.0)
+    alone = fit_gp(x, y, kernel=Periodic(1.0, 1.0, period=360.0), seed=0)
+    for seed in range(3):
+        fit = fit_gp(x, y, kernel=kernel, seed=seed)
+        assert fit.log_marginal_likelihood == pytest.approx(291.102205, abs=1e-5)
+        assert fit.log_marginal_likelihood >= alone.log_marginal_likelihood
+    r = y - x
+    v = float(np.var(r))
+    b = np.exp(search_bounds(x, r, kernel, None, True, False))
+    assert_allclose(b[1], [1e-6 * v, 1e4 * v], rtol=1e-12)  # k1_variance: the unit
+    assert_allclose(b[3], [1e-6, 1e4], rtol=1e-12)  # k2_variance: a factor
+    nested = SquaredExp(1.0, 1.0) + SquaredExp(1.0, 1.0) * (SquaredExp(1.0, 1.0) + kernel)
+    b = np.exp(search_bounds(x, r, nested, None, True, False))
+    units = [b[i, 0] / 1e-6 for i in range(1, nested.n_params, 2)]
+    assert_allclose(units, [v, v, 1.0, 1.0, 1.0], rtol=1e-12)
+
+
+def test_a_product_of_two_scaled_kernels_also_starts_from_its_factors_alone():
+    """SE x SE on 20 micrometre readings over a turn: with today's bounds, screened starts
+    alone ended 27.93 nats below a 60-start L-BFGS-B (291.102266) for one seed of three.
+    Starting from each factor fitted alone (the other flat) every seed reaches it."""
+    x, y = _quasi_periodic_turn(20, 1, 1e-6)
+    kernel = SquaredExp(50.0, 1.0) * SquaredExp(100.0, 1.0)
+    for seed in range(3):
+        fit = fit_gp(x, y, kernel=kernel, seed=seed)
+        assert fit.log_marginal_likelihood == pytest.approx(291.102266, abs=1e-5)

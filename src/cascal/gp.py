@@ -19,7 +19,7 @@ from scipy.linalg import lapack, solve_triangular
 
 from . import linalg, surrogate
 from .errors import InputError, NumericalError
-from .kernels import Kernel, Periodic, Sum, _Scaled, make_kernel
+from .kernels import Kernel, Periodic, Product, Sum, _Scaled, make_kernel
 from .likelihood import Objective, noiseless, search_bounds, theta_names
 from .means import Mean, make_mean
 from .noise import Dense, Diagonal, Noise, as_noise
@@ -466,16 +466,23 @@ def _search(
 
 
 def _component_starts(obj: Objective, b: np.ndarray, n_restarts: int, seed) -> list[np.ndarray]:
-    """Starts for a sum of two scaled kernels (SE, Matern, periodic), learned noise and no
-    known noise: each part fitted alone (its table's search), the other part small, its
-    variance at that fit's noise and its length scale short (e^-1 of the median spacing)
-    or long (the range), the noise 3 log units lower; inside ``b``. The screened search
-    alone ended 0.29 nats low on a review's 20 readings of an SE + Matern 3/2 map (1.7 for
-    another seed), reading the short part as noise. Empty for other kernels."""
+    """Starts for a sum or product of two scaled kernels (SE, Matern, periodic), learned
+    noise and no known noise, from each part fitted alone (its table's search):
+
+    * a sum: the other part small, its variance at that fit's noise and its length scale
+      short (e^-1 of the median spacing) or long (the range), the noise 3 log units lower.
+      The screened search alone ended 0.29 nats low on a review's 20 readings of an SE +
+      Matern 3/2 map (1.7 for another seed), reading the short part as noise;
+    * a product: where the part alone ended, the other part flat (its length scale at
+      its upper bound); the fit's variance goes to the first part (in the target's unit),
+      1 to the second (a factor). Screened starts alone ended below a 60-start L-BFGS-B
+      for 18 of 56 generated sets (by up to 27.9 nats: SE x SE, 20 micrometre readings).
+
+    Inside ``b``; empty for other kernels."""
     kern = obj.kernel
     parts = (getattr(kern, "left", None), getattr(kern, "right", None))
     if not (
-        isinstance(kern, Sum)
+        isinstance(kern, Sum | Product)
         and all(isinstance(k, _Scaled) for k in parts)
         and obj.known is None
         and obj.learn_noise
@@ -495,6 +502,12 @@ def _component_starts(obj: Objective, b: np.ndarray, n_restarts: int, seed) -> l
         except NumericalError:
             continue
         ls, var, noise = alone.full_theta(fit.theta)
+        if isinstance(kern, Product):  # theta: [ls1, var1 (the unit), ls2, var2 (a factor)]
+            flat = b[2 - 2 * i, 1]
+            pair = ([ls, var], [flat, 0.0]) if i == 0 else ([flat, var], [ls, 0.0])
+            t0 = np.array([*pair[0], *pair[1], noise])
+            out.append(np.clip(t0, b[:, 0], b[:, 1]))
+            continue
         for other in lengths:
             pair = ([ls, var], [other, noise]) if i == 0 else ([other, noise], [ls, var])
             t0 = np.array([*pair[0], *pair[1], noise - 3.0])

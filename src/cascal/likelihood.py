@@ -16,7 +16,7 @@ from scipy.linalg import lapack
 
 from . import linalg
 from .errors import InputError
-from .kernels import Kernel, Periodic, _Scaled
+from .kernels import Kernel, Periodic, Product, _Scaled
 from .noise import Noise
 
 __all__ = ["Objective", "noiseless"]
@@ -346,12 +346,13 @@ def search_bounds(
     if known is not None:
         v = max(v, float(np.mean(known.diagonal(r.size))))
     rows: dict[str, tuple[float, float]] = {}
-    for name, leaf in zip(kernel.names, _leaves(kernel), strict=True):
+    for name, (leaf, unit) in zip(kernel.names, _leaves(kernel), strict=True):
         if name.rsplit("_", 2)[-2:] == ["length", "scale"]:
             periodic = isinstance(leaf, Periodic)  # its length scale is dimensionless
             rows[name] = (1e-2, 1e2) if periodic else (max(0.5 * gap, 1e-4 * span), 1e2 * span)
-        else:  # variances and constants, in the target unit squared
-            rows[name] = (1e-6 * v, 1e4 * v)
+        else:  # variances and constants: in the target unit squared, or factors of 1
+            scale = v if unit else 1.0
+            rows[name] = (1e-6 * scale, 1e4 * scale)
     rows["noise_variance"] = (1e-10 * v, 10.0 * v)
     for name, lohi in (user or {}).items():
         if name not in rows:
@@ -375,9 +376,14 @@ def search_bounds(
     return b
 
 
-def _leaves(kernel: Kernel) -> list[Kernel]:
-    """The leaf kernel owning each hyperparameter, in the order of ``kernel.names``."""
+def _leaves(kernel: Kernel, unit: bool = True) -> list[tuple[Kernel, bool]]:
+    """The leaf kernel owning each hyperparameter, in the order of ``kernel.names``, and
+    whether its variance carries the target's unit: in a product, the first factor's
+    does, the others' are numbers (their product spans the target's scale: with every
+    variance bounded by the data's, a product of two could not reach data of variance
+    below 1e-8, micrometres in metres)."""
     left = getattr(kernel, "left", None)
-    if left is not None:
-        return _leaves(left) + _leaves(kernel.right)  # type: ignore[attr-defined]
-    return [kernel] * kernel.n_params
+    if left is None:
+        return [(kernel, unit)] * kernel.n_params
+    right = kernel.right  # type: ignore[attr-defined]
+    return _leaves(left, unit) + _leaves(right, unit and not isinstance(kernel, Product))

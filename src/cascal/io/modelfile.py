@@ -274,22 +274,32 @@ def _check_version(version: Any, name: str) -> None:
 
 
 #: The first cascal whose search bounds are today's (the profiled noise ratio's upper
-#: bound was 10 before): only its model files get their bounds back on loading.
+#: bound was 10 before): only its model files get their bounds back on loading. A kernel
+#: with a product in it: 0.4.4 (a factor's variance was bounded by the data's before).
 _BOUNDS_SINCE = (0, 4, 2)
+_PRODUCT_BOUNDS_SINCE = (0, 4, 4)
 
 
-def _same_bounds(version: object) -> bool:
-    """Whether a model file written by cascal ``version`` searched in today's bounds."""
+def _same_bounds(version: object, kernel: Kernel) -> bool:
+    """Whether a model file written by cascal ``version`` searched ``kernel``'s
+    hyperparameters in today's bounds."""
     parts = str(version).split(".")[:3]
     try:
-        return tuple(int(p) for p in parts) >= _BOUNDS_SINCE
+        v = tuple(int(p) for p in parts)
     except ValueError:  # a development version's suffix, or no version
         return False
+    return v >= (_PRODUCT_BOUNDS_SINCE if _has_product(kernel) else _BOUNDS_SINCE)
+
+
+def _has_product(kernel: Kernel) -> bool:
+    if isinstance(kernel, Product):
+        return True
+    return isinstance(kernel, Sum) and (_has_product(kernel.left) or _has_product(kernel.right))
 
 
 def _from_dict(doc: dict) -> CalibrationModel:
     models: list[FittedGP | OffsetTable] = []
-    bounds = _same_bounds(doc["provenance"].get("cascal_version"))
+    version = doc["provenance"].get("cascal_version")
     data, used, counts = [], [], []
     for k, st in enumerate(doc["stages"]):
         x, y = np.array(st["x"], float), np.array(st["y"], float)
@@ -306,7 +316,7 @@ def _from_dict(doc: dict) -> CalibrationModel:
         targets = np.array(m["targets"], float)
         if m["type"] == "gp":
             model = _gp_from(m, x, targets)
-            model = restore_bounds(model) if bounds else model
+            model = restore_bounds(model) if _same_bounds(version, model.kernel) else model
         else:
             knots, offsets = np.array(m["knots"], float), np.array(m["offsets"], float)
             if knots.size != offsets.size or np.any(np.diff(knots) <= 0):
