@@ -192,6 +192,29 @@ def test_nan_is_refused(saved):
         load_model(saved)
 
 
+def test_numbers_beyond_a_float_are_refused_and_any_seed_is_kept(saved, models, tmp_path):
+    """A review's cases: "jitter": 1e400 (read as inf) and an integer of 400 digits among
+    the readings ended in tracebacks; a UTF-16 file named a codec. A seed of 24 digits
+    (any seed is allowed) still loads, exactly."""
+    text = saved.read_text()
+    saved.write_text(text.replace('"jitter": 0.0', '"jitter": 1e400', 1))
+    with pytest.raises(ModelFileError, match=r"the number 1e400 is out of range"):
+        load_model(saved)
+    saved.write_text(text)
+    _rewrite(saved, lambda d: d["stages"][1]["x"].__setitem__(0, 10**350))
+    with pytest.raises(ModelFileError, match=r"inconsistent .*a number out of range"):
+        load_model(saved)
+    _rewrite(saved, lambda d: d["stages"][1]["x"].__setitem__(0, 10**500))
+    with pytest.raises(ModelFileError, match=r"the integer 1000.* \(501 characters\) is out"):
+        load_model(saved)
+    saved.write_text(text, encoding="utf-16")
+    with pytest.raises(ModelFileError, match="not UTF-8 text"):
+        load_model(saved)
+    big = fit_model(demo_stages(), method="lut", seed=123456789012345678901234)
+    path = save_model(tmp_path / "big_seed.json", big)
+    assert load_model(path).seed == 123456789012345678901234
+
+
 def test_schema_validator():
     schema = load_schema("model", 1)
     assert schema["properties"]["schema_version"] == {"const": 1}
@@ -459,3 +482,33 @@ def test_atomic_write_keeps_a_replaced_files_mode_and_names_a_full_device(tmp_pa
         link.symlink_to("/dev/full")
         with pytest.raises(OSError, match=f"cannot write {link}: No space left on device"):
             atomic.write_text(link, "x" * 100_000)
+
+
+def test_writes_together_are_all_or_none(tmp_path):
+    """A review's case: ``verify -o table --plot figure`` on a disk that filled up at the
+    figure had replaced the table already. Inside ``together`` every write is finished
+    first and the renames come last: a failure leaves every old file as it was, and no
+    temporary behind."""
+    import errno
+
+    from cascal.io import atomic
+
+    a, b = tmp_path / "a.csv", tmp_path / "b.png"
+    a.write_text("old a")
+    b.write_text("old b")
+
+    def full(tmp: str) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(OSError, match=f"cannot write {b}"), atomic.together():
+        atomic.write_text(a, "new a")
+        assert a.read_text() == "old a"  # not renamed yet
+        atomic.atomic_write(b, full)
+    assert (a.read_text(), b.read_text()) == ("old a", "old b")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.png"]
+    with atomic.together():
+        atomic.write_text(a, "new a")
+        atomic.write_text(b, "new b")
+    assert (a.read_text(), b.read_text()) == ("new a", "new b")
+    atomic.write_text(a, "alone")  # outside a block: at once
+    assert a.read_text() == "alone"

@@ -104,6 +104,21 @@ def check_outputs(output: str | None, plot: str | None, inputs: Sequence[str | P
         raise InputError(f"--plot {plot}: the same file as -o; give two names")
 
 
+def write_outputs(*outputs: tuple[str, str | None, Callable[[], Path]]) -> None:
+    """Write each ``(what, path, write)`` whose path is given, all or none (a failed second
+    file leaves the first's old content: :func:`cascal.io.atomic.together`), then say
+    where each went."""
+    from .io.atomic import together
+
+    done = []
+    with together():
+        for what, path, write in outputs:
+            if path is not None:
+                done.append((what, write()))
+    for what, path in done:
+        print(f"{what} written to {path}")
+
+
 def load_checked(model: str, **outputs: str | None):
     """The model file ``model``, loaded and checked by :func:`check_not_inputs`."""
     from .io.modelfile import load_model
@@ -360,9 +375,18 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
                 f"--devices {folder}: {other.name} and {f.name} would both be device "
                 f"{f.stem}; rename one"
             )
+    out = Path(args.output)
+    written = [out / "testbed.json", out / "fleet_summary.csv"]
+    written += [out / "devices" / f"{f.stem}.json" for f in files]
+    for path in written:  # e.g. a test-bed file kept as <out>/testbed.json
+        for other in (args.testbed, *files):
+            if path.exists() and same_file(path, other):
+                raise InputError(
+                    f"-o {args.output}: would overwrite {path}, an input of this command "
+                    f"({other}); give another folder"
+                )
     skip = exclusions(args.exclude, [args.testbed, *files])
     (testbed,) = _read_stages([args.testbed], args, skip[:1])
-    out = Path(args.output)
     tb = fit_model([testbed], **_fit_kwargs(args))
     tb_model = save_model(out / "testbed.json", tb)
     print(f"Test bed fitted once: {tb_model}")

@@ -11,7 +11,8 @@ __all__ = ["add_compare_parser"]
 def _cmd_compare(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import EXIT_NOT_CONFORMING, check_outputs, load_checked, warn
+    from .cli import EXIT_NOT_CONFORMING, check_outputs, load_checked, warn, write_outputs
+    from .io.atomic import save_figure
     from .io.csvout import auto_decimals, write_columns
     from .text import range_text
     from .verification import BAND_LEVEL
@@ -86,11 +87,10 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             "En": c.en,
         }
         decimals = auto_decimals([c.reading, c.old, c.new], c.u if c.has_u else None)
-        print(f"Readings written to {write_columns(args.output, cols, decimals=decimals)}")
-    if fig is not None:
-        from .io.atomic import save_figure
-
-        print(f"Figure written to {save_figure(fig, args.plot, dpi=130)}")
+    write_outputs(
+        ("Readings", args.output, lambda: write_columns(args.output, cols, decimals=decimals)),
+        ("Figure", args.plot, lambda: save_figure(fig, args.plot, dpi=130)),
+    )
     if args.max_change is None:
         return 0
     if s["max_change"] > args.max_change:

@@ -17,9 +17,10 @@ INTERVAL_OPTIONS = ("--reach", "--where")
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import check_outputs, load_checked, warn
+    from .cli import check_outputs, load_checked, warn, write_outputs
     from .cli_study import Progress
     from .errors import InputError
+    from .io.atomic import save_figure
     from .io.csvout import auto_decimals, write_columns
     from .planning import MAX_MEASUREMENTS
     from .workflow import plan_measurements
@@ -70,12 +71,15 @@ def _cmd_plan(args: argparse.Namespace) -> int:
             "u_max": plan.u_max[1:],
         }
         decimals = auto_decimals([plan.positions], plan.u_rms[1:])
-        print(f"Plan written to {write_columns(args.output, cols, decimals=decimals)}")
+    fig = None
     if args.plot is not None:
-        from .io.atomic import save_figure
         from .report import plan_figure
 
-        print(f"Figure written to {save_figure(plan_figure(model, mp), args.plot, dpi=130)}")
+        fig = plan_figure(model, mp)
+    write_outputs(
+        ("Plan", args.output, lambda: write_columns(args.output, cols, decimals=decimals)),
+        ("Figure", args.plot, lambda: save_figure(fig, args.plot, dpi=130)),
+    )
     return 0
 
 

@@ -10,7 +10,6 @@ __all__ = ["add_verify_parser"]
 #: check points share the calibration's error, so they count as few independent ones; but
 #: even one standard normal error exceeds 3 in only 0.27 % of cases.
 _TOO_LARGE = 3.0
-#: Readings, reference values and options at or above this size are refused.
 
 
 def _cmd_verify(args: argparse.Namespace) -> int:
@@ -23,8 +22,10 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         load_checked,
         warn,
         warn_homoscedastic,
+        write_outputs,
     )
     from .errors import InputError
+    from .io.atomic import save_figure
     from .io.csvout import auto_decimals, write_columns
     from .io.data import read_table
     from .text import range_text
@@ -139,11 +140,10 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         decimals = auto_decimals(
             [v.reading[m], v.reference[m], v.corrected[m]], v.u[m] if v.has_u else None
         )
-        print(f"Check points written to {write_columns(args.output, cols, decimals=decimals)}")
-    if fig is not None:
-        from .io.atomic import save_figure
-
-        print(f"Figure written to {save_figure(fig, args.plot, dpi=130)}")
+    write_outputs(
+        ("Check points", args.output, lambda: write_columns(args.output, cols, decimals=decimals)),
+        ("Figure", args.plot, lambda: save_figure(fig, args.plot, dpi=130)),
+    )
     not_judged = ""
     if s["outside_range"]:
         not_judged = f"; {s['outside_range']} outside the range not judged"

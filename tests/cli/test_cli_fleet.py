@@ -167,3 +167,23 @@ def test_models_of_devices_gone_from_the_folder_are_named(fleet, tmp_path):
     assert "1 model(s) of devices with no file in" in res.stderr
     assert "(device02.json): left as they were, not in the summary" in res.stderr
     assert (out / "devices" / "device02.json").exists()
+
+
+def test_outputs_never_overwrite_the_test_bed_or_a_device_file(fleet, tmp_path):
+    """A review's case: a test-bed file kept in the -o folder as fleet_summary.csv was
+    replaced by the summary (exit 0). Now refused before any fit, the file unchanged; and
+    one column named for both readings is refused (a fit of a column against itself)."""
+    _, tb, folder, _, _ = fleet
+    out = tmp_path / "out"
+    out.mkdir()
+    kept = out / "fleet_summary.csv"
+    kept.write_bytes(tb.read_bytes())
+    res = run_cascal("fit-devices", kept, "--devices", folder, "-o", out)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert f"would overwrite {kept}, an input of this command" in res.stderr
+    assert kept.read_bytes() == tb.read_bytes() and sorted(out.iterdir()) == [kept]
+    name = tb.read_text().splitlines()[0].split(",")[0]
+    res = run_cascal("fit-devices", tb, "--devices", folder, "-o", tmp_path / "o2",
+                     "--x-column", name, "--y-column", name)  # fmt: skip
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert f"{tb}, row 1: column {name!r} is named twice" in res.stderr

@@ -1,5 +1,6 @@
 """Atomic file writes: a temporary file in the target folder, then a rename; standard
-output (``-``, or a path to it) gets the finished content where it stands."""
+output (``-``, or a path to it) gets the finished content where it stands. Inside
+:func:`together`, the renames wait until every write of the block has succeeded."""
 
 from __future__ import annotations
 
@@ -8,10 +9,12 @@ import shutil
 import stat
 import sys
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
-__all__ = ["STDOUT", "atomic_write", "is_stdout", "save_figure", "write_text"]
+__all__ = ["STDOUT", "atomic_write", "is_stdout", "save_figure", "together", "write_text"]
 
 #: The output name of standard output.
 STDOUT = "-"
@@ -41,6 +44,39 @@ def is_stdout(path: object) -> bool:
     return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
 
 
+#: The pending (commit, discard) pairs of the innermost :func:`together` block of this
+#: thread, or None outside one.
+_PENDING: ContextVar[list[tuple[Callable[[], None], Callable[[], None]]] | None] = ContextVar(
+    "cascal_pending_writes", default=None
+)
+
+
+@contextmanager
+def together() -> Iterator[None]:
+    """Make the writes of the block (:func:`atomic_write`) one: each is finished in its
+    temporary file as the block runs, and all are renamed onto their names when it ends
+    without an error; after an error (a full disk at the second file, say) none is, and
+    every file the block would have replaced keeps its old content. Writes to standard
+    output or to a device wait for the end too."""
+    staged: list[tuple[Callable[[], None], Callable[[], None]]] = []
+    token = _PENDING.set(staged)
+    try:
+        yield
+    except BaseException:
+        for _, discard in staged:
+            discard()
+        raise
+    finally:
+        _PENDING.reset(token)
+    for i, (commit, _) in enumerate(staged):
+        try:
+            commit()
+        except BaseException:
+            for _, discard in staged[i + 1 :]:
+                discard()
+            raise
+
+
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     """Call ``write(tmp_path)`` and rename the result onto ``path``; nothing half-written.
 
@@ -55,7 +91,11 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
         path: Destination file; its folder is created if missing.
         write: Writes the whole content to the temporary path it is given.
     """
+    pending = _PENDING.get()
     if is_stdout(path):
+        if pending is not None:
+            pending.append((lambda: _to_stdout(path, write), lambda: None))
+            return Path("/dev/stdout" if str(path) == STDOUT else path)
         return _to_stdout(path, write)
     dest = Path(path)
     try:
@@ -63,10 +103,17 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     except OSError:
         mode = None
     if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
-        try:  # a device or a FIFO (/dev/stdout, a pipe): written in place
-            write(str(dest))
-        except OSError as exc:
-            raise _naming(exc, dest, (str(dest), None)) from None
+
+        def in_place() -> None:  # a device or a FIFO (/dev/stdout, a pipe)
+            try:
+                write(str(dest))
+            except OSError as exc:
+                raise _naming(exc, dest, (str(dest), None)) from None
+
+        if pending is not None:
+            pending.append((in_place, lambda: None))
+        else:
+            in_place()
         return dest
     keep = stat.S_IMODE(mode) if mode is not None and stat.S_ISREG(mode) else None
     if dest.is_symlink():  # replace the file the link points at, and keep the link
@@ -82,14 +129,31 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
         os.chmod(tmp, 0o666 & ~_UMASK if keep is None else keep)  # mkstemp makes 0600
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())  # the content is on disk before the name points at it
-        os.replace(tmp, dest)
+        if pending is not None:
+            pending.append((lambda: _replace(tmp, dest), lambda: _discard(tmp)))
+        else:
+            os.replace(tmp, dest)
     except BaseException as exc:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        _discard(tmp)
         if isinstance(exc, OSError):
             raise _naming(exc, dest, (tmp, str(dest), None)) from None
         raise
     return dest
+
+
+def _replace(tmp: str, dest: Path) -> None:
+    try:
+        os.replace(tmp, dest)
+    except BaseException as exc:
+        _discard(tmp)
+        if isinstance(exc, OSError):
+            raise _naming(exc, dest, (tmp, str(dest), None)) from None
+        raise
+
+
+def _discard(tmp: str) -> None:
+    if os.path.exists(tmp):
+        os.unlink(tmp)
 
 
 def _naming(exc: OSError, dest: Path, names: tuple) -> OSError:

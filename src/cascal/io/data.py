@@ -324,6 +324,8 @@ def _pick(header: list[str], columns: Sequence[str | None], name: str, hint: str
             raise InputError(f"missing column {c!r}; the header has {have}", file=name, row=1)
         if header.count(c) > 1:
             raise InputError(f"column {c!r} appears {header.count(c)} times", file=name, row=1)
+        if header.index(c) in idx:
+            raise InputError(f"column {c!r} is named twice; name two columns", file=name, row=1)
         idx.append(header.index(c))
     free = [i for i in range(len(header)) if i not in idx]
     want = idx.count(None)

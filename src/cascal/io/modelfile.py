@@ -215,8 +215,13 @@ def load_model_checksum(path: str | os.PathLike) -> tuple[CalibrationModel, str]
     name = str(path)
     try:
         text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
+    except OSError as exc:
         raise ModelFileError(f"{name}: cannot read the model file ({exc})") from None
+    except UnicodeDecodeError:
+        raise ModelFileError(
+            f"{name}: not a valid model file: not UTF-8 text (cascal writes model files as "
+            "UTF-8 JSON)"
+        ) from None
     try:
         return _parse(text, name)
     except RecursionError:
@@ -227,7 +232,7 @@ def _parse(text: str, name: str) -> tuple[CalibrationModel, str]:
     """The model in a model file's text and its checksum; ModelFileError naming ``name``
     if it is none."""
     try:
-        doc = json.loads(text, parse_constant=_reject_constant)
+        doc = json.loads(text, parse_constant=_reject_constant, parse_float=_float, parse_int=_int)
     except json.JSONDecodeError as exc:
         end = " (the file ends early: truncated?)" if exc.pos >= len(text.rstrip()) else ""
         raise ModelFileError(
@@ -256,6 +261,10 @@ def _parse(text: str, name: str) -> tuple[CalibrationModel, str]:
         return _from_dict(doc), value
     except (CascalError, ValueError, IndexError) as exc:
         raise ModelFileError(f"{name}: inconsistent model file: {exc}") from None
+    except OverflowError:  # an integer beyond a float's range where a float is expected
+        raise ModelFileError(
+            f"{name}: inconsistent model file: a number out of range (beyond 1.8e308)"
+        ) from None
 
 
 def _check_version(version: Any, name: str) -> None:
@@ -602,6 +611,26 @@ def _pretty(obj: Any, indent: int = 0, texts: dict[int, str] | None = None) -> s
 
 def _reject_constant(name: str) -> None:
     raise ValueError(f"{name} is not a number JSON allows")
+
+
+def _float(text: str) -> float:
+    """A JSON number as a finite float (``1e400`` is refused, not read as inf)."""
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"the number {_short(text)} is out of range (beyond 1.8e308)")
+    return value
+
+
+def _int(text: str) -> int:
+    """A JSON integer, exact (a seed may have any number of digits); refused beyond 400
+    digits, far past any float (where one is expected, a float's range is checked later)."""
+    if len(text.lstrip("-")) > 400:
+        raise ValueError(f"the integer {_short(text)} is out of range")
+    return int(text)
+
+
+def _short(text: str) -> str:
+    return text if len(text) <= 24 else f"{text[:12]}...{text[-6:]} ({len(text)} characters)"
 
 
 def _now() -> str:
