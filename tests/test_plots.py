@@ -64,3 +64,22 @@ def test_file_names_and_units_are_drawn_as_written_and_ticks_carry_no_offset():
     texts = [t.get_text().replace("\N{MINUS SIGN}", "-") for t in ax.get_yticklabels()]
     ticks = [float(t) for t in texts if t]
     assert ticks and min(ticks) < -99.0  # the values themselves, no offset to add
+
+
+def test_vector_figures_carry_no_date_and_fixed_ids(tmp_path):
+    """A review's case: two runs of one study gave SVG files that differed (a date and
+    random clip-path ids). The same figure now gives the same bytes as SVG, PDF and PNG."""
+    import matplotlib.pyplot as plt
+
+    from cascal.io.atomic import save_figure
+
+    for k in (1, 2):
+        fig, ax = plt.subplots()
+        ax.plot([1, 2, 3], [1, 4, 9], "o-")
+        ax.set_yscale("log")
+        for fmt in ("svg", "pdf", "png"):
+            save_figure(fig, tmp_path / f"f{k}.{fmt}")
+        plt.close(fig)
+    for fmt in ("svg", "pdf", "png"):
+        assert (tmp_path / f"f1.{fmt}").read_bytes() == (tmp_path / f"f2.{fmt}").read_bytes()
+    assert b"<dc:date>" not in (tmp_path / "f1.svg").read_bytes()

@@ -7,6 +7,9 @@ import re
 import sqlite3
 import subprocess
 import sys
+import threading
+from concurrent.futures import Executor, Future
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 import pytest
@@ -259,6 +262,9 @@ def test_bad_counts_and_scheduler_are_input_errors(tmp_path):
     with pytest.raises(InputError, match="cannot reach a Dask scheduler"):
         run_study(tmp_path / "c", trials=2, config=CONFIG, scheduler="notanaddress")
     assert not (tmp_path / "c").exists()  # nothing written before the cluster answered
+    for address in ("tls://127.0.0.1:1", "ucx://127.0.0.1:1"):  # a review's TypeErrors
+        with pytest.raises(InputError, match="cannot reach a Dask scheduler"):
+            run_study(tmp_path / "c", trials=2, config=CONFIG, scheduler=address)
 
 
 def test_pinned_blas_stays_single_threaded_on_every_thread(monkeypatch):
@@ -432,3 +438,52 @@ def test_the_folder_stays_locked_while_the_outputs_are_written(tmp_path, monkeyp
     monkeypatch.setattr(study, "_write_outputs", writing)
     assert run_study(tmp_path, trials=2, config=CONFIG, workers=1).ran == 2 and seen == [2]
     StudyDB(tmp_path, CONFIG.as_dict()).close()  # free once the run has ended
+
+
+class _Breaking(Executor):
+    """Runs the first ``k`` tasks at once, then fails the rest as a killed worker would."""
+
+    def __init__(self, k: int) -> None:
+        self.k = k
+
+    def submit(self, fn, /, *args, **kwargs):
+        fut: Future = Future()
+        if self.k > 0:
+            self.k -= 1
+            fut.set_result(fn(*args, **kwargs))
+        else:  # fails later: after the finished ones have been stored
+            err = BrokenProcessPool("a process was terminated abruptly")
+            threading.Timer(0.2, fut.set_exception, (err,)).start()
+        return fut
+
+
+def test_lost_workers_are_named_and_the_study_resumes(tmp_path):
+    """A review's cases: a local worker killed (BrokenProcessPool) or the Dask scheduler
+    lost (CancelledError) ended in a traceback. Now a WorkerError (the CLI: one line, exit
+    1) says how many trials are stored; the same command resumes to the same numbers."""
+    from cascal.errors import WorkerError
+
+    words = r"lost the workers \(BrokenProcessPool: .*; 2 of 4 trials are stored in .*: run"
+    with pytest.raises(WorkerError, match=words):
+        run_study(tmp_path, trials=4, config=CONFIG, executor=_Breaking(1), chunk=2)
+    resumed = run_study(tmp_path, trials=4, config=CONFIG, workers=1)
+    assert resumed.ran == 2
+    direct = run_study(tmp_path / "direct", trials=4, config=CONFIG, workers=1)
+    assert _costs(resumed) == _costs(direct)
+
+
+def test_cli_study_names_a_shrunk_summary_and_a_dangling_link(tmp_path):
+    """A folder summarised with fewer trials than it holds says so; an --out that is a
+    link to nothing is refused (it read "File exists", exit 1)."""
+    out = tmp_path / "study"
+    cmd = [sys.executable, "-m", "cascal.cli", "study", "--workers", "1", "--out", str(out)]
+    for n in ("3", "2"):
+        done = subprocess.run([*cmd, "--trials", n], capture_output=True, text=True, check=False)
+        assert done.returncode == 0, done.stderr
+    assert "The folder holds 3 trials; its outputs now cover the first 2" in done.stdout
+    link = tmp_path / "dangling"
+    link.symlink_to(tmp_path / "nowhere")
+    cmd[-1] = str(link)
+    done = subprocess.run([*cmd, "--trials", "1"], capture_output=True, text=True, check=False)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert f"--out {link}: a link to {tmp_path / 'nowhere'}, which does not exist" in done.stderr

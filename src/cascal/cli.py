@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from ._version import __version__
-from .errors import CascalError, InputError
+from .errors import CascalError, InputError, WorkerError
 from .io.atomic import is_stdout
 
 __all__ = ["main"]
@@ -73,6 +73,8 @@ def check_output(
         return
     if folder and p.exists() and not p.is_dir():
         raise InputError(f"{option} {p}: expected a folder, got an existing file")
+    if folder and p.is_symlink() and not p.exists():
+        raise InputError(f"{option} {p}: a link to {os.readlink(p)}, which does not exist")
     if not folder and p.is_dir():
         raise InputError(f"{option} {p}: expected a file name, got an existing folder")
     for other in inputs:
@@ -950,6 +952,9 @@ def _main(argv: Sequence[str] | None) -> int:
     try:  # an output written to stdout keeps it: the command's own lines go to stderr
         with contextlib.redirect_stdout(sys.stderr) if to_stdout else contextlib.nullcontext():
             return func(args)
+    except WorkerError as exc:  # not the input: the machines failed
+        print(f"cascal {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
     except CascalError as exc:
         print(f"cascal {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

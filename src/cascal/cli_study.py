@@ -79,6 +79,11 @@ def _cmd_study(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     s = outcome.summary
     print(f"Study of {s['n_trials']} trials in {args.out}/ ({outcome.ran} run now, {wall:.1f} s).")
+    if outcome.stored > s["n_trials"]:
+        print(
+            f"The folder holds {outcome.stored} trials; its outputs now cover the first "
+            f"{s['n_trials']} (run with --trials {outcome.stored} for all)."
+        )
     print(f"{'method':>14} {'median J':>12} {'mean J':>12} {'q10':>10} {'q90':>10}  [µm]")
     for m, st in s["methods"].items():
         print(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["CascalError", "InputError", "ModelFileError", "NumericalError"]
+__all__ = ["CascalError", "InputError", "ModelFileError", "NumericalError", "WorkerError"]
 
 
 class CascalError(Exception):
@@ -48,3 +48,7 @@ class NumericalError(CascalError, ArithmeticError):
 
 class ModelFileError(CascalError):
     """A model file is missing, corrupt, edited, or of an unsupported schema version."""
+
+
+class WorkerError(CascalError):
+    """The executor lost its workers or its scheduler; work finished before is kept."""

@@ -16,15 +16,22 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import (
+    BrokenExecutor,
+    CancelledError,
+    Executor,
+    Future,
+    ProcessPoolExecutor,
+    as_completed,
+)
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, WorkerError
 from .gp import pin_blas
-from .io.atomic import save_figure, write_text
+from .io.atomic import save_figure, together, write_text
 from .io.studydb import StudyDB
 from .montecarlo import StudyConfig, TrialResult, run_chunk, run_trial, summarize
 
@@ -42,12 +49,14 @@ class StudyOutcome:
         results: Every trial, ordered by index.
         summary: As written to ``summary.json``.
         ran: Trials computed by this call (the rest were resumed from the database).
+        stored: Trials in the folder's database, those beyond ``trials`` included.
     """
 
     folder: Path
     results: list[TrialResult]
     summary: dict
     ran: int
+    stored: int = 0
 
 
 def run_study(
@@ -99,12 +108,19 @@ def run_study(
         done = trials - len(pending)
         if progress:
             progress(done, trials)
-        for results in _execute(config, chunks, executor, n_workers):
-            db.add(results)
-            done += len(results)
-            if progress:
-                progress(done, trials)
-        results = [r for r in db.results() if r.index < trials]
+        try:
+            for results in _execute(config, chunks, executor, n_workers):
+                db.add(results)
+                done += len(results)
+                if progress:
+                    progress(done, trials)
+        except WorkerError as exc:
+            raise WorkerError(
+                f"{exc}; {done} of {trials} trials are stored in {folder}: run the same "
+                "command again to resume"
+            ) from None
+        stored = db.results()
+        results = [r for r in stored if r.index < trials]
         if client is not None:
             client.close()  # disconnect only: the cluster belongs to the user
             client = None
@@ -113,7 +129,7 @@ def run_study(
         db.close()
         if client is not None:
             client.close()
-    return StudyOutcome(folder, results, summary, len(pending))
+    return StudyOutcome(folder, results, summary, len(pending), len(stored))
 
 
 def _write_outputs(folder: Path, results: list[TrialResult], config: StudyConfig) -> dict:
@@ -123,13 +139,14 @@ def _write_outputs(folder: Path, results: list[TrialResult], config: StudyConfig
     summary["seconds_per_trial"] = _mean_seconds(results)
     summary["config"] = config.as_dict()
     _sweep(folder)
-    write_text(folder / "trials.csv", trials_table(results, config.methods))
-    write_text(folder / "summary.json", json.dumps(summary, indent=2) + "\n")
     from .plots import plot_cost_distribution
 
     fig = plot_cost_distribution({m: [r.cost[m] for r in results] for m in config.methods})
-    save_figure(fig, folder / "cost_distribution.png", dpi=130)
-    save_figure(fig, folder / "cost_distribution.svg")
+    with together():  # a run killed here leaves the last run's four files, or the new ones
+        write_text(folder / "trials.csv", trials_table(results, config.methods))
+        write_text(folder / "summary.json", json.dumps(summary, indent=2) + "\n")
+        save_figure(fig, folder / "cost_distribution.png", dpi=130)
+        save_figure(fig, folder / "cost_distribution.svg")
     return summary
 
 
@@ -196,7 +213,17 @@ def _execute(config, chunks, executor, n_workers):
     try:
         futures = [executor.submit(run_chunk, config, c) for c in chunks]
         for fut in as_completed(futures):
-            yield fut.result()
+            try:
+                results = fut.result()
+            except (CancelledError, BrokenExecutor) as exc:  # a worker killed, a lost cluster
+                raise WorkerError(f"lost the workers ({type(exc).__name__}: {exc})") from None
+            except Exception as exc:
+                if type(exc).__module__.split(".")[0] != "distributed":
+                    raise
+                raise WorkerError(
+                    f"the Dask cluster failed ({type(exc).__name__}: {exc})"
+                ) from None
+            yield results
     finally:
         for f in futures:
             f.cancel()
@@ -210,7 +237,7 @@ def _connect(address: str):
 
     try:
         return Client(address, timeout="10s")
-    except (OSError, ValueError, TimeoutError) as exc:
+    except (OSError, ValueError, TimeoutError, TypeError) as exc:  # TypeError: tls://, ucx://
         raise InputError(f"--scheduler {address}: cannot reach a Dask scheduler ({exc})") from None
 
 

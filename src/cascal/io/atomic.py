@@ -190,6 +190,16 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
 
 
 def save_figure(fig, path: str | os.PathLike, **kwargs) -> Path:
-    """Save a matplotlib figure atomically; the format follows the file suffix."""
-    fmt = Path(path).suffix.lstrip(".") or "png"
-    return atomic_write(path, lambda tmp: fig.savefig(tmp, format=fmt, **kwargs))
+    """Save a matplotlib figure atomically; the format follows the file suffix. SVG and PDF
+    files carry no date and fixed ids: the same figure gives the same bytes."""
+    import matplotlib
+
+    fmt = Path(path).suffix.lstrip(".").lower() or "png"
+    if fmt in ("svg", "pdf"):
+        kwargs.setdefault("metadata", {"Date" if fmt == "svg" else "CreationDate": None})
+
+    def _write(tmp: str) -> None:
+        with matplotlib.rc_context({"svg.hashsalt": "cascal"}):
+            fig.savefig(tmp, format=fmt, **kwargs)
+
+    return atomic_write(path, _write)
