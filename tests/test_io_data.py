@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import re
 
 import numpy as np
 import pytest
@@ -147,7 +148,9 @@ def test_a_mean_of_repeats_is_named_as_such(tmp_path):
     (the file holds no cell with that value)."""
     path = tmp_path / "rep.csv"
     path.write_text("a,b\n1,1\n2,2.6\n2,2.4\n3,2.45\n4,4\n")
-    with pytest.raises(InputError, match=r"b 2\.5 at a 2\.0 \(the mean of its 2 readings\)"):
+    with pytest.raises(
+        InputError, match=r"b 2\.5 at a 2\.0 \(the mean of its 2 readings, rows 3 a"
+    ):
         read_stage(path)
 
 
@@ -242,3 +245,38 @@ def test_utf16_files_are_named_as_such(tmp_path):
     p.write_bytes("a,b\n1,1\n2,2\n3,3\n".encode("utf-16"))  # with its byte-order mark
     with pytest.raises(InputError, match="UTF-16 text, not UTF-8: save it as CSV"):
         read_stage(p)
+
+
+@pytest.mark.parametrize(
+    ("text", "row", "rows"),
+    [  # a review's cases: the row named held a correct value
+        (
+            "a,b\n1,1\n2,2\n2,2.1\n2,-5\n3,3\n4,4\n",
+            5,
+            "the mean of its 3 readings, rows 3, 4 and 5",
+        ),
+        ("a,b\n1,1\n2,2\n3,9\n4,4\n5,5\n", 4, "b 4.0 at a 4.0 (row 5) is not above b 9.0"),
+        ("a,b\n1,1\n2,2\n3,-1\n4,4\n5,5\n", 4, "b -1.0 at a 3.0 (row 4) is not above b 2.0"),
+    ],
+)
+def test_a_point_out_of_step_is_named_by_its_rows(tmp_path, text, row, rows):
+    """A mean of repeats names all its rows, and the error's row is the reading out of
+    step: a spike (too high) before the step back, a dip (too low) after it, and within a
+    mean its reading furthest that way."""
+    p = _write(tmp_path, text)
+    with pytest.raises(InputError, match=re.escape(rows)) as exc:
+        read_stage(p)
+    assert exc.value.row == row
+
+
+def test_a_quote_never_closed_is_named_where_it_opens(tmp_path):
+    """A review's case: a stray quote at the start of row 5 took the rest of the file into
+    one cell, and the message named the last row as "missing cells". A quoted cell that
+    spans lines and closes is still read."""
+    rows = "".join(f"{k},{k}.5\n" for k in range(1, 30))
+    p = _write(tmp_path, "a,b\n" + rows.replace("4,4.5", '"4,4.5'))
+    with pytest.raises(InputError, match="a quoted cell opens in this row and is never") as exc:
+        read_stage(p)
+    assert exc.value.row == 5
+    p = _write(tmp_path, 'a,b\n1,1\n"2\n",2\n3,3\n4,4\n')
+    assert read_stage(p).x.tolist() == [1.0, 2.0, 3.0, 4.0]

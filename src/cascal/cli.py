@@ -968,6 +968,13 @@ def _main(argv: Sequence[str] | None) -> int:
             text = f"{exc.filename}: {exc.strerror}"
         print(f"cascal {args.command}: error: {text}", file=sys.stderr)
         return EXIT_FAILURE
+    except MemoryError:
+        print(
+            f"cascal {args.command}: error: out of memory (the data too large for this "
+            "machine?); nothing was written",
+            file=sys.stderr,
+        )
+        return EXIT_FAILURE
     except KeyboardInterrupt:
         print(f"cascal {args.command}: interrupted", file=sys.stderr)
         return 130

@@ -123,6 +123,9 @@ def fit_model(
     if not all_stages:
         raise InputError("expected at least one stage file")
     periodic = kernel == "periodic" and method != "lut"
+    if method != "lut":
+        for s in stages:
+            _check_size(s)
     if not periodic:
         for k, s in enumerate(stages):
             _check_inside(s, all_stages[len(head) + k - 1].x if len(head) + k else None)
@@ -153,6 +156,22 @@ def fit_model(
         seed=seed,
         n_restarts=n_restarts,
     )
+
+
+#: Most positions of a GP stage that a model file is fitted for: its matrices take 8 n^2
+#: bytes each (0.8 GB at 10 000, several of them during the fit) and the fit O(n^3) time.
+MAX_GP_POINTS = 10_000
+
+
+def _check_size(s: StageData) -> None:
+    n = s.x.size
+    if n > MAX_GP_POINTS:
+        raise InputError(
+            f"{n} distinct positions; a GP stage takes at most {MAX_GP_POINTS} (its matrices "
+            f"need {8 * n * n / 1e9:.3g} GB each): average neighbouring readings, or fit "
+            "--method lut",
+            file=s.source.file,
+        )
 
 
 @dataclass(frozen=True, slots=True)

@@ -323,3 +323,33 @@ def test_ctrl_c_while_the_command_starts_ends_without_a_traceback(tmp_path):
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
     assert p.returncode == 128 + signal.SIGINT, p.stderr
     assert p.stderr == "cascal: interrupted\n"
+
+
+def test_a_stage_too_large_for_a_gp_is_named_and_memory_ends_without_traceback(
+    tmp_path, monkeypatch, capsys
+):
+    """A review's case: 100 000 readings in a stage file ended in a traceback (74.5 GiB
+    asked for). A GP stage of over MAX_GP_POINTS positions is refused, naming the file;
+    and a MemoryError anywhere ends with one line, exit 1, no traceback."""
+    import numpy as np
+
+    from cascal import cli, workflow
+    from cascal.errors import InputError
+    from cascal.io.data import read_stage
+
+    x = np.linspace(0.0, 1.0, workflow.MAX_GP_POINTS + 1)
+    path = tmp_path / "huge.csv"
+    path.write_text("testbed,reference\n" + "".join(f"{v!r},{v!r}\n" for v in x.tolist()))
+    stage = read_stage(path)
+    with pytest.raises(InputError, match=rf"huge.csv: {x.size} distinct positions; a GP"):
+        workflow.fit_model([stage])
+    assert workflow.fit_model([stage], method="lut").fitted.models[0] is not None
+
+    def boom(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(workflow, "fit_model", boom)
+    assert cli.main(["fit", str(path), "-o", str(tmp_path / "m.json")]) == 1
+    err = capsys.readouterr().err
+    assert "cascal fit: error: out of memory" in err and "Traceback" not in err
+    assert not (tmp_path / "m.json").exists()

@@ -241,10 +241,23 @@ def read_stage(
         k = bad[0]
         xn, yn = table.source.columns
 
+        def group(j: int) -> np.ndarray:
+            return np.flatnonzero(rep.inverse == j)  # its readings, in file order
+
         def value(j: int) -> str:
-            n = int(rep.counts[j])
-            mean = f" (the mean of its {n} readings)" if n > 1 else ""
-            return f"{yn} {float(rep.y[j])!r} at {xn} {float(rep.x[j])!r}{mean}"
+            r = table.rows[group(j)].tolist()
+            if len(r) == 1:
+                where = f"row {r[0]}"
+            else:
+                listed = ", ".join(map(str, r[:-1])) if len(r) <= 5 else f"{r[0]}, {r[1]}, ..."
+                where = f"the mean of its {len(r)} readings, rows {listed} and {r[-1]}"
+            return f"{yn} {float(rep.y[j])!r} at {xn} {float(rep.x[j])!r} ({where})"
+
+        # the point out of step: the first one too high (above the point after the next),
+        # else the second too low; within a mean, its reading furthest that way
+        high = k + 2 < rep.y.size and rep.y[k] >= rep.y[k + 2]
+        members = group(k if high else k + 1)
+        culprit = members[np.argmax(y[members]) if high else np.argmin(y[members])]
 
         steps = rep.y.size - 1
         hint = f"; {bad.size} of its {steps} steps go back: " + (
@@ -256,11 +269,11 @@ def read_stage(
         if bad.size == 1:
             hint = "; a mistyped cell, or rows out of step?"
         raise InputError(
-            f"{value(k + 1)} is not above {value(k)} (row {int(rows[k])}); "
+            f"{value(k + 1)} is not above {value(k)}; "
             "the more accurate reading must increase with the calibrated one (one-to-one, "
             f"the paper's bijectivity assumption){hint}",
             file=name,
-            row=int(rows[k + 1]),
+            row=int(table.rows[culprit]),
             column=yn,
         )
     noise = rep.noise if np.any(rep.counts > 1) else None
@@ -404,8 +417,14 @@ def _slow(
     rows: list[int] = []
     seen: set[int] = set()
     width = len(header)
+    last = reader.line_num
     for cells in _checked(reader, name):
         row = reader.line_num
+        start, last = last + 1, row
+        if row > start and _unclosed(text, start, delim):  # it ran to the end of the file
+            raise InputError(
+                "a quoted cell opens in this row and is never closed", file=name, row=start
+            )
         if not cells or all(not c.strip() for c in cells):
             continue  # blank line
         seen.add(row)
@@ -429,6 +448,17 @@ def _slow(
     _check_excluded(skip, seen, name)
     values = np.array(out, dtype=float).reshape(len(out), width)
     return values, np.array(rows, dtype=np.int64)
+
+
+def _unclosed(text: str, start: int, delim: str) -> bool:
+    """Whether the record starting on line ``start`` (1-based) opens a quote it never
+    closes (a lenient reader takes the rest of the file into that cell)."""
+    tail = text.split("\n", start - 1)[-1]
+    try:
+        next(csv.reader(io.StringIO(tail), delimiter=delim, strict=True), None)
+    except csv.Error as exc:
+        return "unexpected end of data" in str(exc)
+    return False
 
 
 #: A number as a CSV cell may write it: ASCII digits, an optional sign, point and exponent,
