@@ -55,12 +55,14 @@ def test_nan_is_an_empty_cell_and_huge_values_fall_back(tmp_path):
     write_columns(p, {"a": np.array([1.5, np.nan]), "b": np.array([True, False])}, decimals=2)
     assert p.read_text() == "a,b\n1.50,1\n,0\n"
     write_columns(p, {"a": np.array([1e300, -2.0])}, decimals=3)
-    assert p.read_text() == "a\n1e+300\n-2.0\n"
+    assert p.read_text() == "a\n1e+300\n-2.000\n"  # the decimals kept where they fit
+    write_columns(p, {"a": np.array([3.6e14 + 10.25, 1.0])}, decimals=7)  # a review's case
+    assert p.read_text() == "a\n360000000000010.2500000\n1.0000000\n"
     flags = np.ma.masked_array([True, False, True], [False, False, True])
     write_columns(p, {"a": np.array([1.5, np.nan, 2.0]), "ok": flags}, decimals=1)
     assert p.read_text() == "a,ok\n1.5,1\n,0\n2.0,\n"
     write_columns(p, {"a": np.array([1e300, 1.0, 2.0]), "ok": flags}, decimals=1)  # slow path
-    assert p.read_text() == "a,ok\n1e+300,1\n1.0,0\n2.0,\n"
+    assert p.read_text() == "a,ok\n1e+300,1\n1.0,0\n2.0,\n"  # (one decimal: as repr)
 
 
 def test_auto_decimals():

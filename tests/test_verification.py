@@ -141,3 +141,31 @@ def test_rotary_model_check_points_across_the_seam():
     b = verify_model(model, case.readings, turned, u_reading=0.0)
     assert_allclose(b.error, a.error, rtol=0, atol=1e-9)
     assert a.inside.all() and np.max(np.abs(a.error)) < 1e-3
+
+
+def test_rotary_readings_many_turns_away_are_corrected_as_their_angle():
+    """A review's case: a reading 1e9 turns away was corrected by the kernel evaluated
+    there, which lost digits (u came out 0, the correction 0.0017 deg off). Now any turn
+    is corrected as its angle in the calibrated turn: the same correction and u as the
+    GP's own at that angle, and only a reading so far out that a float64 holds it less
+    finely than u is flagged."""
+    from cascal.workflow import correct
+
+    case = rotary_demo(0)
+    model = fit_model(demo_stages(case), kernel="periodic", period=360.0, unit="deg",
+                      n_restarts=2)  # fmt: skip
+    gp = model.fitted.device
+    angle = np.array([10.0, 123.456, 359.0])
+    mean, std = gp.predict(angle, return_std=True)
+    for turns in (0, 1, -3, 10**6, 10**8):
+        r = angle + 360.0 * turns
+        c = correct(model, r)
+        err = np.abs((c.corrected - r) - (mean - angle))
+        assert np.all(err <= 1e-4 * std + 4.0 * np.spacing(r)), (turns, err)
+        assert_allclose(c.u, std, rtol=1e-5)
+        assert not c.out_of_range.any()
+    edge = correct(model, angle + 360.0 * 10**9)  # float64 steps of 6.1e-5 deg there
+    assert np.array_equal(edge.out_of_range, np.spacing(edge.reading) > edge.u)
+    assert edge.out_of_range.any() and not edge.out_of_range.all()
+    far = correct(model, angle + 360.0 * 10**12)
+    assert far.out_of_range.all() and np.all(far.u > 0.5 * std)

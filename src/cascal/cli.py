@@ -321,6 +321,8 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     n_out = int(np.count_nonzero(out))
     lo, hi = model.calibrated_range
     where = f"outside the calibrated range {range_text(lo, hi)} {model.unit}"
+    if model.periodic:  # every turn is calibrated: only a reading too large is flagged
+        where = "so far out that a float64 holds them less finely than their u"
     if n_out and args.out_of_range == "error":
         first = int(table.rows[np.argmax(out)])
         raise InputError(f"{n_out} reading(s) {where}", file=args.readings, row=first)
@@ -341,6 +343,8 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     if n_out:
         first = int(table.rows[np.argmax(out)])
         what = "left empty" if args.out_of_range == "empty" else "extrapolated, do not trust them"
+        if model.periodic and args.out_of_range != "empty":
+            what = "rounded beyond their u, do not trust them"
         warn(
             "correct",
             f"{n_out} of {out.size} readings lie {where} (first: {args.readings}, row {first}); "

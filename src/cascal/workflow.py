@@ -349,15 +349,24 @@ def _check_inside(stage: StageData, upper_x: np.ndarray | None) -> None:
 def correct(model: CalibrationModel, readings: object) -> Correction:
     """Correct device readings (m,) with the model's last stage.
 
-    Readings outside the calibrated range are flagged (never for a periodic model, which
-    covers the full turn); they are still corrected, by the GP's extrapolation (back to the
-    prior mean, with a growing u) or the lookup table's held end offset.
+    Readings outside the calibrated range are flagged; they are still corrected, by the
+    GP's extrapolation (back to the prior mean, with a growing u) or the lookup table's
+    held end offset. A periodic model covers every turn: a reading is corrected as its
+    angle in the calibrated turn, and flagged only where it is so large that a float64
+    holds it less finely than its u.
     """
     r = np.asarray(readings, dtype=float)
     lo, hi = model.calibrated_range
     out = np.zeros(r.shape, bool) if model.periodic else (r < lo) | (r > hi)
     device = model.fitted.device
-    if isinstance(device, FittedGP):
+    if isinstance(device, FittedGP) and model.periodic and device.mean.slope == 1.0:
+        # the correction repeats every turn: take it in the calibrated turn (a kernel at a
+        # reading many turns away loses digits: 1e9 turns away, u came out 0)
+        w = lo + np.mod(r - lo, float(model.period))  # type: ignore[arg-type]
+        fw, u = predict_many(device, w, return_std=True)
+        corrected = r + (fw - w)
+        out = np.spacing(np.abs(r)) > u  # a reading too large for its correction's digits
+    elif isinstance(device, FittedGP):
         corrected, u = predict_many(device, r, return_std=True)
     else:
         corrected, u = device(r), np.full(r.shape, np.nan)

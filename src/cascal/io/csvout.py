@@ -135,17 +135,22 @@ def write_columns(
         raise ValueError(f"columns: expected equal shapes (n,), got {sorted(sizes)}")
     body = format_columns(list(columns.values()), decimals)
     if body is None:
-        return _write_slow(path, columns)
+        return _write_slow(path, columns, decimals)
     data = (",".join(columns) + "\n").encode() + body
     return atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
 
 
-def _write_slow(path: str | os.PathLike, columns: dict[str, np.ndarray]) -> Path:
+def _write_slow(path: str | os.PathLike, columns: dict[str, np.ndarray], decimals: int) -> Path:
+    """As :func:`write_columns`, one cell at a time: for values beyond 2^53 / 10^decimals.
+    Those up to 1e16 keep the decimals too; larger ones are written in full (``1e+300``)."""
+
     def cell(x: float | int | None) -> str:
         if x is None:  # masked
             return ""
         if isinstance(x, float):
-            return repr(x) if math.isfinite(x) else ""
+            if not math.isfinite(x):
+                return ""
+            return f"{x:.{decimals}f}" if abs(x) < 1e16 else repr(x)
         return str(int(x))
 
     lists = [np.ma.asarray(c).tolist() for c in columns.values()]
