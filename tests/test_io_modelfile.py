@@ -215,6 +215,14 @@ def test_numbers_beyond_a_float_are_refused_and_any_seed_is_kept(saved, models, 
     assert load_model(path).seed == 123456789012345678901234
 
 
+def test_a_bad_period_is_named_as_such(saved):
+    """A review's case: a period of -1.5 read "expected null, got number" (the first of
+    the allowed forms), not what is wrong with it."""
+    _rewrite(saved, lambda d: d.__setitem__("period", -1.5))
+    with pytest.raises(ModelFileError, match=r"\$\.period: expected a number > 0, got -1\.5"):
+        load_model(saved)
+
+
 def test_schema_validator():
     schema = load_schema("model", 1)
     assert schema["properties"]["schema_version"] == {"const": 1}

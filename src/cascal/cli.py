@@ -367,7 +367,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     check_output(args.output, folder=True)
     folder = Path(args.devices)
     if not folder.is_dir():
-        raise InputError(f"--devices {folder}: no such folder")
+        what = "a file, not a folder" if folder.exists() else "no such folder"
+        raise InputError(f"--devices {folder}: {what}")
     if Path(args.output).resolve() == folder.resolve():  # its summary: a device file next time
         raise InputError(f"-o {args.output}: the same folder as --devices; give another")
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".csv" and p.is_file())

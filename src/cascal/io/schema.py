@@ -49,9 +49,10 @@ _TYPES = {
 class SchemaError(ValueError):
     """An instance does not match its schema; ``path`` says where (``$.stages[1].x``)."""
 
-    def __init__(self, path: str, message: str) -> None:
+    def __init__(self, path: str, message: str, *, of_type: bool = False) -> None:
         self.path = path
         self.detail = message
+        self.of_type = of_type  # the instance is of another JSON type than expected
         super().__init__(f"{path}: {message}")
 
 
@@ -81,7 +82,8 @@ def validate(instance: Any, schema: dict, *, root: dict | None = None, path: str
         elif key == "type":
             names = [rule] if isinstance(rule, str) else rule
             if not any(_TYPES[t](instance) for t in names):
-                raise SchemaError(path, f"expected {' or '.join(names)}, got {_kind(instance)}")
+                got = _kind(instance)
+                raise SchemaError(path, f"expected {' or '.join(names)}, got {got}", of_type=True)
         elif key == "const" and not _same(instance, rule):
             raise SchemaError(path, f"expected {rule!r}, got {_short(instance)}")
         elif key == "enum" and not any(_same(instance, r) for r in rule):
@@ -142,8 +144,8 @@ def _one_of(inst: Any, options: list, root: dict, path: str) -> None:
             validate(inst, option, root=root, path=path)
         except SchemaError as exc:
             errors.append(exc)
-    if len(errors) == len(options):
-        raise max(errors, key=lambda e: len(e.path))  # the option that matched furthest
+    if len(errors) == len(options):  # the option that matched furthest: of the right type
+        raise max(errors, key=lambda e: (len(e.path), not e.of_type))
     if len(errors) < len(options) - 1:
         raise SchemaError(path, "matches more than one of the allowed forms")
 
