@@ -13,6 +13,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
+from typing import NoReturn
 
 __all__ = ["STDOUT", "atomic_write", "is_stdout", "save_figure", "together", "write_text"]
 
@@ -129,15 +130,12 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
         os.chmod(tmp, 0o666 & ~_UMASK if keep is None else keep)  # mkstemp makes 0600
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())  # the content is on disk before the name points at it
-        if pending is not None:
-            pending.append((lambda: _replace(tmp, dest), lambda: _discard(tmp)))
-        else:
-            os.replace(tmp, dest)
     except BaseException as exc:
-        _discard(tmp)
-        if isinstance(exc, OSError):
-            raise _naming(exc, dest, (tmp, str(dest), None)) from None
-        raise
+        _fail(exc, tmp, dest)
+    if pending is not None:
+        pending.append((lambda: _replace(tmp, dest), lambda: _discard(tmp)))
+    else:
+        _replace(tmp, dest)
     return dest
 
 
@@ -145,10 +143,15 @@ def _replace(tmp: str, dest: Path) -> None:
     try:
         os.replace(tmp, dest)
     except BaseException as exc:
-        _discard(tmp)
-        if isinstance(exc, OSError):
-            raise _naming(exc, dest, (tmp, str(dest), None)) from None
-        raise
+        _fail(exc, tmp, dest)
+
+
+def _fail(exc: BaseException, tmp: str, dest: Path) -> NoReturn:
+    """Remove the temporary ``tmp`` and raise ``exc``, an OSError naming ``dest``."""
+    _discard(tmp)
+    if isinstance(exc, OSError):
+        raise _naming(exc, dest, (tmp, str(dest), None)) from None
+    raise exc
 
 
 def _discard(tmp: str) -> None:
