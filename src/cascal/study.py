@@ -216,19 +216,22 @@ def _execute(config, chunks, executor, n_workers):
             try:
                 results = fut.result()
             except (CancelledError, BrokenExecutor) as exc:  # a worker killed, a lost cluster
-                raise WorkerError(f"lost the workers ({type(exc).__name__}: {exc})") from None
+                raise WorkerError(f"lost the workers ({_named(exc)})") from None
             except Exception as exc:
                 if type(exc).__module__.split(".")[0] != "distributed":
                     raise
-                raise WorkerError(
-                    f"the Dask cluster failed ({type(exc).__name__}: {exc})"
-                ) from None
+                raise WorkerError(f"the Dask cluster failed ({_named(exc)})") from None
             yield results
     finally:
         for f in futures:
             f.cancel()
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _named(exc: BaseException) -> str:
+    """``Type: message``, or the type alone where the message is empty."""
+    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
 
 
 def _connect(address: str):
