@@ -3,6 +3,8 @@ profiling, hyperparameter recovery and the fitted state."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -941,3 +943,23 @@ def test_a_product_of_two_scaled_kernels_also_starts_from_its_factors_alone():
     for seed in range(3):
         fit = fit_gp(x, y, kernel=kernel, seed=seed)
         assert fit.log_marginal_likelihood == pytest.approx(291.102266, abs=1e-5)
+
+
+def test_the_public_likelihood_warns_where_it_needed_jitter():
+    """A review's case: 50 readings, SE(0.2, 1e-6) and a noise of 1e-22 factorise only
+    with jitter 1e-18 (mean diagonal times 1e-12), and the value returned was the jittered
+    matrix's with no word of it (136 nats from the exact one). Now a JitterWarning names
+    the jitter; the value equals a fit's with those hyperparameters, which records it."""
+    from cascal import JitterWarning
+
+    x = np.linspace(0, 1, 50)
+    y = x + 1e-3 * np.sin(5 * x)
+    k = SquaredExp(0.2, 1e-6)
+    with pytest.warns(JitterWarning, match=r"needed jitter 1e-18 on its diagonal") as rec:
+        v = log_marginal_likelihood(x, y, kernel=k, noise_variance=1e-22)
+    assert len(rec) == 1
+    fit = fit_gp(x, y, kernel=k, hyperparameters=dict(k.params, noise_variance=1e-22))
+    assert fit.jitter == pytest.approx(1e-18, rel=1e-12) and v == fit.log_marginal_likelihood
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # none where no jitter is needed
+        log_marginal_likelihood(x, y, kernel=k, noise_variance=1e-10)

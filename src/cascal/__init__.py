@@ -9,7 +9,7 @@ from importlib.util import find_spec as _find_spec
 from typing import TYPE_CHECKING as _TYPE_CHECKING
 
 from ._version import __version__
-from .errors import CascalError, InputError, ModelFileError, NumericalError
+from .errors import CascalError, InputError, JitterWarning, ModelFileError, NumericalError
 
 if _TYPE_CHECKING:  # pragma: no cover
     from . import kernels, noise, planning, screening, simulation
@@ -66,6 +66,7 @@ __all__ = [
     "FittedCascade",
     "FittedGP",
     "InputError",
+    "JitterWarning",
     "Matern32",
     "Matern52",
     "Mean",

@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
-__all__ = ["CascalError", "InputError", "ModelFileError", "NumericalError", "WorkerError"]
+__all__ = [
+    "CascalError",
+    "InputError",
+    "JitterWarning",
+    "ModelFileError",
+    "NumericalError",
+    "WorkerError",
+]
 
 
 class CascalError(Exception):
@@ -52,3 +59,7 @@ class ModelFileError(CascalError):
 
 class WorkerError(CascalError):
     """The executor lost its workers or its scheduler; work finished before is kept."""
+
+
+class JitterWarning(RuntimeWarning):
+    """A matrix needed jitter on its diagonal to factorise: the result is the jittered one's."""

@@ -12,13 +12,14 @@ from __future__ import annotations
 import contextlib
 import math
 import numbers
+import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import lapack, solve_triangular
 
 from . import linalg, surrogate
-from .errors import InputError, NumericalError
+from .errors import InputError, JitterWarning, NumericalError
 from .kernels import Kernel, Periodic, Product, Sum, _Scaled, make_kernel
 from .likelihood import Objective, noiseless, search_bounds, theta_names
 from .means import Mean, make_mean
@@ -124,6 +125,11 @@ def log_marginal_likelihood(
         noise_variance: Learned white-noise variance added on top.
         eval_gradient: Also return d lml / d [kernel.theta, log noise_variance]: shape
             (p+1,), or (p,) when ``noise_variance`` is 0 (then it is not a parameter).
+
+    Warns:
+        JitterWarning: The target covariance needed jitter on its diagonal to factorise;
+            the value is then the jittered matrix's (as a fit with these hyperparameters
+            records in ``FittedGP.jitter``).
     """
     xa, ya = check_pair(x, y)
     if not isinstance(kernel, Kernel):
@@ -139,6 +145,14 @@ def log_marginal_likelihood(
     obj = Objective(xa, ya - m(xa), kernel, known, learn_noise=learned)
     theta = np.r_[kernel.theta, np.log(noise_variance)] if learned else kernel.theta
     v, g = obj.value_and_grad(theta, grad=eval_gradient)
+    if obj.jitter:
+        warnings.warn(
+            f"the target covariance needed jitter {obj.jitter:.3g} on its diagonal to "
+            "factorise (not positive definite to round-off): the value is the jittered "
+            "matrix's; more noise_variance, or a shorter length scale, avoids it",
+            JitterWarning,
+            stacklevel=2,
+        )
     return (v, g) if eval_gradient else v
 
 

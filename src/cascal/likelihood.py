@@ -64,6 +64,7 @@ class Objective:
         self.known_matrix = None if known is None else known.dense(self.n)
         self.profile = bool(profile)
         self._exact = True
+        self.jitter = 0.0  # added to the diagonal in the latest factorisation
         # no noise on the diagonal (a kernel matrix alone): round-off pivots count as failed
         self._noiseless = noiseless(known, self.n, 1.0 if learn_noise else 0.0)
         self._last: tuple | None = None  # (theta bytes, L, Kt^-1 r, r^T A^-1 r or None)
@@ -84,8 +85,9 @@ class Objective:
     def _factor(self, Kt: np.ndarray) -> np.ndarray:
         L, info = lapack.dpotrf(Kt, lower=1, clean=1)
         self._exact = info == 0 and (not self._noiseless or linalg.pivots_ok(L, Kt))
+        self.jitter = 0.0
         if not self._exact:
-            L, _ = linalg.cholesky(Kt, noiseless=self._noiseless)
+            L, self.jitter = linalg.cholesky(Kt, noiseless=self._noiseless)
         return L
 
     def factor_at(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
