@@ -963,3 +963,31 @@ def test_the_public_likelihood_warns_where_it_needed_jitter():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # none where no jitter is needed
         log_marginal_likelihood(x, y, kernel=k, noise_variance=1e-10)
+
+
+def test_a_sum_of_kernels_with_a_known_noise_also_starts_from_its_parts():
+    """A review's generated set: 200 readings, a dense known noise, SE + SE. From screened
+    starts seed 0 ended at 3863.743, 14.0 nats below the review's L-BFGS-B optimum
+    (3877.751137, inside the bounds); each part fitted alone with the known noise (the
+    other part short or long) gives starts that reach it for every seed."""
+    g = np.random.default_rng(166)  # the review's generator, draw for draw
+    n = int(g.choice([3, 4, 5, 6, 7, 8, 10, 15, 25, 50, 80, 120, 200]))
+    g.integers(8)
+    g.integers(4)
+    x = np.sort(g.uniform(0, 1, n))
+    x = x * 10 ** g.uniform(-4, 1) * g.choice([1, 100, 1e4])
+    span = x.max() - x.min()
+    amp = 10 ** g.uniform(-6, -2) * span
+    f = 0.0
+    for _ in range(g.integers(1, 5)):
+        f = f + amp * g.normal() * np.sin(g.uniform(1, 60) * x / span + g.uniform(0, 6))
+    sd = amp * 10 ** g.uniform(-5, 0)
+    y = x + f + sd * g.standard_normal(n)
+    if g.random() < 0.2:
+        y[g.integers(n)] += 20 * sd + amp
+    g.integers(3)
+    A = g.standard_normal((n, 5))
+    noise = Dense(A @ A.T * sd**2 / 5, atol=1e-300)
+    for seed in range(3):
+        fit = fit_gp(x, y, kernel=SquaredExp() + SquaredExp(), noise=noise, seed=seed)
+        assert fit.log_marginal_likelihood == pytest.approx(3877.7511, abs=1e-3)

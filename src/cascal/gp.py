@@ -480,13 +480,15 @@ def _search(
 
 
 def _component_starts(obj: Objective, b: np.ndarray, n_restarts: int, seed) -> list[np.ndarray]:
-    """Starts for a sum or product of two scaled kernels (SE, Matern, periodic), learned
-    noise and no known noise, from each part fitted alone (its table's search):
+    """Starts for a sum or product of two scaled kernels (SE, Matern, periodic) from each
+    part fitted alone (its own search, the known noise and learned noise as given):
 
-    * a sum: the other part small, its variance at that fit's noise and its length scale
-      short (e^-1 of the median spacing) or long (the range), the noise 3 log units lower.
-      The screened search alone ended 0.29 nats low on a review's 20 readings of an SE +
-      Matern 3/2 map (1.7 for another seed), reading the short part as noise;
+    * a sum: the other part small, its variance at that fit's noise (without a learned
+      noise, 3 log units below the part's variance) and its length scale short (e^-1 of
+      the median spacing) or long (the range), the noise 3 log units lower. The screened
+      search alone ended 0.29 nats low on a review's 20 readings of an SE + Matern 3/2 map
+      (1.7 for another seed), reading the short part as noise; with a known noise, 1.0
+      to 14.0 nats low in another review's generated sets;
     * a product: where the part alone ended, the other part flat (its length scale at
       its upper bound); the fit's variance goes to the first part (in the target's unit),
       1 to the second (a factor). Screened starts alone ended below a 60-start L-BFGS-B
@@ -496,11 +498,7 @@ def _component_starts(obj: Objective, b: np.ndarray, n_restarts: int, seed) -> l
     kern = obj.kernel
     parts = (getattr(kern, "left", None), getattr(kern, "right", None))
     if not (
-        isinstance(kern, Sum | Product)
-        and all(isinstance(k, _Scaled) for k in parts)
-        and obj.known is None
-        and obj.learn_noise
-        and obj.n > 2
+        isinstance(kern, Sum | Product) and all(isinstance(k, _Scaled) for k in parts) and obj.n > 2
     ):
         return []
     gaps = np.diff(np.sort(obj.x))
@@ -508,23 +506,26 @@ def _component_starts(obj: Objective, b: np.ndarray, n_restarts: int, seed) -> l
     if not gaps.size:
         return []
     lengths = (math.log(float(np.median(gaps))) - 1.0, math.log(float(gaps.sum())))
+    learn = obj.learn_noise
+    profile = obj.known is None and learn
     out = []
     for i, part in enumerate(parts):
-        alone = Objective(obj.x, obj.r, part.unit(1.0), None, True, profile=True)
+        alone = Objective(obj.x, obj.r, part.unit(1.0), obj.known, learn, profile=profile)
         try:
             fit = _search(alone, alone.bounds(), n_restarts, seed, tabulate=True, fill=False)
         except NumericalError:
             continue
-        ls, var, noise = alone.full_theta(fit.theta)
+        ls, var, *rest = alone.full_theta(fit.theta)
+        noise = rest[0] if learn else var - 3.0  # (the other part's variance, in a sum)
+        tail = [noise] if learn else []
         if isinstance(kern, Product):  # theta: [ls1, var1 (the unit), ls2, var2 (a factor)]
             flat = b[2 - 2 * i, 1]
             pair = ([ls, var], [flat, 0.0]) if i == 0 else ([flat, var], [ls, 0.0])
-            t0 = np.array([*pair[0], *pair[1], noise])
-            out.append(np.clip(t0, b[:, 0], b[:, 1]))
+            out.append(np.clip(np.array([*pair[0], *pair[1], *tail]), b[:, 0], b[:, 1]))
             continue
         for other in lengths:
             pair = ([ls, var], [other, noise]) if i == 0 else ([other, noise], [ls, var])
-            t0 = np.array([*pair[0], *pair[1], noise - 3.0])
+            t0 = np.array([*pair[0], *pair[1], *(t - 3.0 for t in tail)])
             out.append(np.clip(t0, b[:, 0], b[:, 1]))
     return out
 
