@@ -520,3 +520,15 @@ def test_writes_together_are_all_or_none(tmp_path):
     assert (a.read_text(), b.read_text()) == ("new a", "new b")
     atomic.write_text(a, "alone")  # outside a block: at once
     assert a.read_text() == "alone"
+    full = tmp_path / "full.png"  # a device that fails: copied before any rename
+    full.symlink_to("/dev/full")
+    with pytest.raises(OSError, match=f"cannot write {full}"), atomic.together():
+        atomic.write_text(a, "newer a")
+        atomic.write_text(full, "figure")
+    assert a.read_text() == "alone"
+    with pytest.raises(RuntimeError), atomic.together():  # a block inside joins the outer
+        with atomic.together():
+            atomic.write_text(b, "inner b")
+        raise RuntimeError("after the inner block")
+    assert b.read_text() == "new b"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.png", "full.png"]

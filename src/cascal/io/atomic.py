@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 __all__ = ["STDOUT", "atomic_write", "is_stdout", "save_figure", "together", "write_text"]
 
@@ -45,37 +45,62 @@ def is_stdout(path: object) -> bool:
     return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
 
 
-#: The pending (commit, discard) pairs of the innermost :func:`together` block of this
-#: thread, or None outside one.
-_PENDING: ContextVar[list[tuple[Callable[[], None], Callable[[], None]]] | None] = ContextVar(
+#: The pending (to a stream?, commit, discard) of this thread's :func:`together` block, or
+#: None outside one.
+_PENDING: ContextVar[list[tuple[bool, Callable[[], None], Callable[[], None]]] | None] = ContextVar(
     "cascal_pending_writes", default=None
 )
 
 
 @contextmanager
 def together() -> Iterator[None]:
-    """Make the writes of the block (:func:`atomic_write`) one: each is finished in its
-    temporary file as the block runs, and all are renamed onto their names when it ends
-    without an error; after an error (a full disk at the second file, say) none is, and
-    every file the block would have replaced keeps its old content. Writes to standard
-    output or to a device wait for the end too."""
-    staged: list[tuple[Callable[[], None], Callable[[], None]]] = []
+    """Make the writes of the block (:func:`atomic_write`) one: each is finished in a
+    temporary file as the block runs; when it ends without an error, the contents for
+    standard output or a device are copied there first (they can still fail), then the
+    files are renamed onto their names. After an error in the block, or in a copy, no file
+    is replaced: each keeps its old content. A block inside another joins the outer one."""
+    if _PENDING.get() is not None:  # nested: the outer block commits
+        yield
+        return
+    staged: list[tuple[bool, Callable[[], None], Callable[[], None]]] = []
     token = _PENDING.set(staged)
     try:
         yield
     except BaseException:
-        for _, discard in staged:
+        for _, _, discard in staged:
             discard()
         raise
     finally:
         _PENDING.reset(token)
-    for i, (commit, _) in enumerate(staged):
+    ordered = [e for e in staged if e[0]] + [e for e in staged if not e[0]]  # streams first
+    for i, (_, commit, _) in enumerate(ordered):
         try:
             commit()
         except BaseException:
-            for _, discard in staged[i + 1 :]:
+            for _, _, discard in ordered[i + 1 :]:
                 discard()
             raise
+
+
+def _stage_stream(write: Callable[[str], None], deliver: Callable[[Any], None]) -> None:
+    """Inside :func:`together`: ``write`` the content to a private temporary file now, and
+    ``deliver(file)`` it (to standard output or a device) at the commit."""
+    fd, tmp = tempfile.mkstemp(prefix=".cascal-", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(tmp)
+    except BaseException:
+        _discard(tmp)
+        raise
+
+    def commit() -> None:
+        try:
+            with open(tmp, "rb") as fh:
+                deliver(fh)
+        finally:
+            _discard(tmp)
+
+    _PENDING.get().append((True, commit, lambda: _discard(tmp)))  # type: ignore[union-attr]
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
@@ -95,7 +120,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     pending = _PENDING.get()
     if is_stdout(path):
         if pending is not None:
-            pending.append((lambda: _to_stdout(path, write), lambda: None))
+            _stage_stream(write, lambda fh: _to_stdout(path, lambda tmp: _copy_to(fh, tmp)))
             return Path("/dev/stdout" if str(path) == STDOUT else path)
         return _to_stdout(path, write)
     dest = Path(path)
@@ -105,16 +130,16 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
         mode = None
     if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
 
-        def in_place() -> None:  # a device or a FIFO (/dev/stdout, a pipe)
+        def in_place(target: Callable[[str], None]) -> None:  # a device or a FIFO
             try:
-                write(str(dest))
+                target(str(dest))
             except OSError as exc:
                 raise _naming(exc, dest, (str(dest), None)) from None
 
         if pending is not None:
-            pending.append((in_place, lambda: None))
+            _stage_stream(write, lambda fh: in_place(lambda d: _copy_to(fh, d)))
         else:
-            in_place()
+            in_place(write)
         return dest
     keep = stat.S_IMODE(mode) if mode is not None and stat.S_ISREG(mode) else None
     if dest.is_symlink():  # replace the file the link points at, and keep the link
@@ -133,7 +158,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
     except BaseException as exc:
         _fail(exc, tmp, dest)
     if pending is not None:
-        pending.append((lambda: _replace(tmp, dest), lambda: _discard(tmp)))
+        pending.append((False, lambda: _replace(tmp, dest), lambda: _discard(tmp)))
     else:
         _replace(tmp, dest)
     return dest
@@ -152,6 +177,12 @@ def _fail(exc: BaseException, tmp: str, dest: Path) -> NoReturn:
     if isinstance(exc, OSError):
         raise _naming(exc, dest, (tmp, str(dest), None)) from None
     raise exc
+
+
+def _copy_to(fh: Any, path: str) -> None:
+    """Copy the open file ``fh`` to ``path`` (written from its start)."""
+    with open(path, "wb") as out:
+        shutil.copyfileobj(fh, out)
 
 
 def _discard(tmp: str) -> None:
