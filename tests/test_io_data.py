@@ -257,6 +257,8 @@ def test_utf16_files_are_named_as_such(tmp_path):
         ),
         ("a,b\n1,1\n2,2\n3,9\n4,4\n5,5\n", 4, "b 4.0 at a 4.0 (row 5) is not above b 9.0"),
         ("a,b\n1,1\n2,2\n3,-1\n4,4\n5,5\n", 4, "b -1.0 at a 3.0 (row 4) is not above b 2.0"),
+        ("a,b\n1,1\n2,2\n3,3\n4,9\n5,5\n", 5, "b 5.0 at a 5.0 (row 6) is not above b 9.0"),
+        ("a,b\n1,1\n2,2\n3,3\n4,4\n5,0\n", 6, "b 0.0 at a 5.0 (row 6) is not above b 4.0"),
     ],
 )
 def test_a_point_out_of_step_is_named_by_its_rows(tmp_path, text, row, rows):
@@ -277,6 +279,10 @@ def test_a_quote_never_closed_is_named_where_it_opens(tmp_path):
     p = _write(tmp_path, "a,b\n" + rows.replace("4,4.5", '"4,4.5'))
     with pytest.raises(InputError, match="a quoted cell opens in this row and is never") as exc:
         read_stage(p)
+    assert exc.value.row == 5
+    closed_later = rows.replace("4,4.5", '"4,4.5').replace("9,9.5", '9,"9.5"')
+    with pytest.raises(InputError, match="runs on to row 10, which leaves 1 cell for") as exc:
+        read_stage(_write(tmp_path, "a,b\n" + closed_later))
     assert exc.value.row == 5
     p = _write(tmp_path, 'a,b\n1,1\n"2\n",2\n3,3\n4,4\n')
     assert read_stage(p).x.tolist() == [1.0, 2.0, 3.0, 4.0]

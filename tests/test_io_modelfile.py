@@ -204,6 +204,10 @@ def test_numbers_beyond_a_float_are_refused_and_any_seed_is_kept(saved, models, 
     _rewrite(saved, lambda d: d["stages"][1]["x"].__setitem__(0, 10**350))
     with pytest.raises(ModelFileError, match=r"inconsistent .*a number out of range"):
         load_model(saved)
+    saved.write_text(text)
+    _rewrite(saved, lambda d: d["stages"][1]["model"].__setitem__("noise_variance", 10**20))
+    with pytest.raises(ModelFileError, match=r"inconsistent .*a number out of range"):
+        load_model(saved)  # an int NumPy cannot hold where a float is due (a TypeError)
     _rewrite(saved, lambda d: d["stages"][1]["x"].__setitem__(0, 10**500))
     with pytest.raises(ModelFileError, match=r"the integer 1000.* \(501 characters\) is out"):
         load_model(saved)

@@ -83,3 +83,4 @@ def test_vector_figures_carry_no_date_and_fixed_ids(tmp_path):
     for fmt in ("svg", "pdf", "png"):
         assert (tmp_path / f"f1.{fmt}").read_bytes() == (tmp_path / f"f2.{fmt}").read_bytes()
     assert b"<dc:date>" not in (tmp_path / "f1.svg").read_bytes()
+    assert b"CreationDate" not in (tmp_path / "f1.pdf").read_bytes()

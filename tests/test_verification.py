@@ -169,3 +169,5 @@ def test_rotary_readings_many_turns_away_are_corrected_as_their_angle():
     assert edge.out_of_range.any() and not edge.out_of_range.all()
     far = correct(model, angle + 360.0 * 10**12)
     assert far.out_of_range.all() and np.all(far.u > 0.5 * std)
+    with pytest.raises(InputError, match="readings: expected finite values, got inf"):
+        correct(model, [np.inf, 5.0])

@@ -975,8 +975,7 @@ def _main(argv: Sequence[str] | None) -> int:
         return EXIT_FAILURE
     except MemoryError:
         print(
-            f"cascal {args.command}: error: out of memory (the data too large for this "
-            "machine?); nothing was written",
+            f"cascal {args.command}: error: out of memory (the data too large for this machine?)",
             file=sys.stderr,
         )
         return EXIT_FAILURE

@@ -51,6 +51,8 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     s, unit = v.summary(), model.unit
     lo, hi = model.calibrated_range
     where = f"the calibrated range {range_text(lo, hi)} {unit}"
+    if model.periodic:  # every turn is calibrated
+        where = f"the range a float64 holds to better than u (any turn of {model.period:g} {unit})"
     if s["points"] == 0:
         raise InputError(f"no check point lies inside {where}", file=args.check)
     fig = None

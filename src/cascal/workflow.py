@@ -29,7 +29,7 @@ from .planning import LowerStage, Plan, candidate_readings, check_interval, cove
 from .screening import LEVEL, Screening, Spread, repeats_screening, screen
 from .tabulate import predict_many
 from .text import range_text
-from .validation import check_count
+from .validation import as_positions, check_count
 from .verification import COVERAGE_FACTOR, Comparison, Verification, compare, verify
 
 __all__ = [
@@ -68,7 +68,9 @@ class Correction:
         corrected: Corrected positions, shape (m,), same unit.
         u: Standard uncertainty of each correction (of the calibration map at that
             reading, not of the reading's own repeatability), shape (m,); NaN for ``lut``.
-        out_of_range: True where the reading lies outside the calibrated range, shape (m,).
+        out_of_range: True where the reading lies outside the calibrated range (a periodic
+            model's covers every turn: where a float64 holds the reading less finely than
+            its u), shape (m,).
     """
 
     reading: np.ndarray
@@ -355,16 +357,17 @@ def correct(model: CalibrationModel, readings: object) -> Correction:
     angle in the calibrated turn, and flagged only where it is so large that a float64
     holds it less finely than its u.
     """
-    r = np.asarray(readings, dtype=float)
+    r = as_positions(readings, "readings")
     lo, hi = model.calibrated_range
-    out = np.zeros(r.shape, bool) if model.periodic else (r < lo) | (r > hi)
+    out = (r < lo) | (r > hi)
     device = model.fitted.device
-    if isinstance(device, FittedGP) and model.periodic and device.mean.slope == 1.0:
-        # the correction repeats every turn: take it in the calibrated turn (a kernel at a
-        # reading many turns away loses digits: 1e9 turns away, u came out 0)
+    if isinstance(device, FittedGP) and model.periodic:
+        # the GP's part beyond its prior mean repeats every turn: take it in the calibrated
+        # turn (a kernel at a reading many turns away loses digits: 1e9 turns away, u came
+        # out 0)
         w = lo + np.mod(r - lo, float(model.period))  # type: ignore[arg-type]
         fw, u = predict_many(device, w, return_std=True)
-        corrected = r + (fw - w)
+        corrected = device.mean(r) + (fw - device.mean(w))
         out = np.spacing(np.abs(r)) > u  # a reading too large for its correction's digits
     elif isinstance(device, FittedGP):
         corrected, u = predict_many(device, r, return_std=True)

@@ -150,7 +150,10 @@ def _write_slow(path: str | os.PathLike, columns: dict[str, np.ndarray], decimal
         if isinstance(x, float):
             if not math.isfinite(x):
                 return ""
-            return f"{x:.{decimals}f}" if abs(x) < 1e16 else repr(x)
+            if abs(x) >= 1e16:
+                return repr(x)
+            text = f"{x:.{decimals}f}"
+            return text[1:] if text[0] == "-" and not text.strip("-0.") else text  # no -0.000
         return str(int(x))
 
     lists = [np.ma.asarray(c).tolist() for c in columns.values()]

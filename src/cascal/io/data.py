@@ -253,9 +253,13 @@ def read_stage(
                 where = f"the mean of its {len(r)} readings, rows {listed} and {r[-1]}"
             return f"{yn} {float(rep.y[j])!r} at {xn} {float(rep.x[j])!r} ({where})"
 
-        # the point out of step: the first one too high (above the point after the next),
-        # else the second too low; within a mean, its reading furthest that way
-        high = k + 2 < rep.y.size and rep.y[k] >= rep.y[k + 2]
+        # the point out of step: the first one too high (above the point after the next;
+        # at the end, the second above the point before the first), else the second too
+        # low; within a mean, its reading furthest that way
+        if k + 2 < rep.y.size:
+            high = bool(rep.y[k] >= rep.y[k + 2])
+        else:
+            high = k >= 1 and bool(rep.y[k + 1] > rep.y[k - 1])
         members = group(k if high else k + 1)
         culprit = members[np.argmax(y[members]) if high else np.argmin(y[members])]
 
@@ -424,6 +428,14 @@ def _slow(
         if row > start and _unclosed(text, start, delim):  # it ran to the end of the file
             raise InputError(
                 "a quoted cell opens in this row and is never closed", file=name, row=start
+            )
+        if row > start and len(cells) != width:  # lines run together by a stray quote
+            raise InputError(
+                f"a quoted cell opens in this row and runs on to row {row}, which leaves "
+                f"{len(cells)} cell{'s' * (len(cells) != 1)} for {width} columns: a stray "
+                "quote?",
+                file=name,
+                row=start,
             )
         if not cells or all(not c.strip() for c in cells):
             continue  # blank line

@@ -261,9 +261,10 @@ def _parse(text: str, name: str) -> tuple[CalibrationModel, str]:
         return _from_dict(doc), value
     except (CascalError, ValueError, IndexError) as exc:
         raise ModelFileError(f"{name}: inconsistent model file: {exc}") from None
-    except OverflowError:  # an integer beyond a float's range where a float is expected
+    except (OverflowError, TypeError):  # an integer too large where a float is expected
         raise ModelFileError(
-            f"{name}: inconsistent model file: a number out of range (beyond 1.8e308)"
+            f"{name}: inconsistent model file: a number out of range (an integer beyond a "
+            "float's range, or one NumPy cannot hold)"
         ) from None
 
 
