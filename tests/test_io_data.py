@@ -286,3 +286,9 @@ def test_a_quote_never_closed_is_named_where_it_opens(tmp_path):
     assert exc.value.row == 5
     p = _write(tmp_path, 'a,b\n1,1\n"2\n",2\n3,3\n4,4\n')
     assert read_stage(p).x.tolist() == [1.0, 2.0, 3.0, 4.0]
+    assert read_stage(p).rows.tolist() == [2, 3, 5, 6]  # a record is named by its first line
+    p = _write(tmp_path, 'a,b,note\n1,1,x\n2,0,"line1\nline2\nline3"\n3,3,y\n4,4,z\n')
+    with pytest.raises(InputError) as exc:
+        read_stage(p, x_column="a", y_column="b")
+    assert exc.value.row == 3  # (a review's case: it was named row 5, its last line)
+    assert read_stage(p, x_column="a", y_column="b", exclude=[3]).x.tolist() == [1, 3, 4]

@@ -204,10 +204,12 @@ def test_numbers_beyond_a_float_are_refused_and_any_seed_is_kept(saved, models, 
     _rewrite(saved, lambda d: d["stages"][1]["x"].__setitem__(0, 10**350))
     with pytest.raises(ModelFileError, match=r"inconsistent .*a number out of range"):
         load_model(saved)
-    saved.write_text(text)
+    saved.write_text(text)  # an integer where a float is due: read as one (1e20 here)
     _rewrite(saved, lambda d: d["stages"][1]["model"].__setitem__("noise_variance", 10**20))
-    with pytest.raises(ModelFileError, match=r"inconsistent .*a number out of range"):
-        load_model(saved)  # an int NumPy cannot hold where a float is due (a TypeError)
+    assert load_model(saved).fitted.models[1].noise_variance == 1e20
+    _rewrite(saved, lambda d: d["stages"][1].__setitem__("counts", [2**63] * 100))
+    with pytest.raises(ModelFileError, match=r"inconsistent .*a number out of range \("):
+        load_model(saved)  # an integer beyond int64 among the counts
     _rewrite(saved, lambda d: d["stages"][1]["x"].__setitem__(0, 10**500))
     with pytest.raises(ModelFileError, match=r"the integer 1000.* \(501 characters\) is out"):
         load_model(saved)
@@ -535,4 +537,13 @@ def test_writes_together_are_all_or_none(tmp_path):
             atomic.write_text(b, "inner b")
         raise RuntimeError("after the inner block")
     assert b.read_text() == "new b"
+    with atomic.together():  # a failed inner block's writes are dropped, the outer's kept
+        try:
+            with atomic.together():
+                atomic.write_text(a, "inner a")
+                raise RuntimeError("inner")
+        except RuntimeError:
+            pass
+        atomic.write_text(b, "outer b")
+    assert (a.read_text(), b.read_text()) == ("alone", "outer b")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.png", "full.png"]

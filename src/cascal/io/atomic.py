@@ -58,9 +58,18 @@ def together() -> Iterator[None]:
     temporary file as the block runs; when it ends without an error, the contents for
     standard output or a device are copied there first (they can still fail), then the
     files are renamed onto their names. After an error in the block, or in a copy, no file
-    is replaced: each keeps its old content. A block inside another joins the outer one."""
-    if _PENDING.get() is not None:  # nested: the outer block commits
-        yield
+    is replaced: each keeps its old content. A block inside another joins the outer one
+    (its writes are dropped if it fails, and committed with the outer block's otherwise)."""
+    outer = _PENDING.get()
+    if outer is not None:  # nested: the outer block commits, unless this one fails
+        mark = len(outer)
+        try:
+            yield
+        except BaseException:
+            for _, _, discard in outer[mark:]:
+                discard()
+            del outer[mark:]
+            raise
         return
     staged: list[tuple[bool, Callable[[], None], Callable[[], None]]] = []
     token = _PENDING.set(staged)

@@ -437,6 +437,7 @@ def _slow(
                 file=name,
                 row=start,
             )
+        row = start  # a record of several lines is named by its first
         if not cells or all(not c.strip() for c in cells):
             continue  # blank line
         seen.add(row)

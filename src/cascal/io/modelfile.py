@@ -261,10 +261,9 @@ def _parse(text: str, name: str) -> tuple[CalibrationModel, str]:
         return _from_dict(doc), value
     except (CascalError, ValueError, IndexError) as exc:
         raise ModelFileError(f"{name}: inconsistent model file: {exc}") from None
-    except (OverflowError, TypeError):  # an integer too large where a float is expected
+    except (OverflowError, TypeError) as exc:  # an integer too large for its array
         raise ModelFileError(
-            f"{name}: inconsistent model file: a number out of range (an integer beyond a "
-            "float's range, or one NumPy cannot hold)"
+            f"{name}: inconsistent model file: a number out of range ({exc})"
         ) from None
 
 
@@ -410,10 +409,10 @@ def _gp_from(m: dict, x: np.ndarray, targets: np.ndarray) -> FittedGP:
         kernel=_kernel_from(m["kernel"]),
         mean=Mean(m["mean"]["slope"], m["mean"]["offset"]),
         noise=None if m["known_noise"] is None else _noise_from(m["known_noise"]),
-        noise_variance=m["noise_variance"],
+        noise_variance=float(m["noise_variance"]),  # (an integer of any size too)
         L=L,
         alpha=m["alpha"],
-        jitter=m["jitter"],
+        jitter=float(m["jitter"]),
         log_marginal_likelihood=math.nan if lml is None else lml,
         optimization=None if m["optimization"] is None else _opt_from(m["optimization"]),
     )
