@@ -164,6 +164,9 @@ def test_rotary_readings_many_turns_away_are_corrected_as_their_angle():
         assert np.all(err <= 1e-4 * std + 4.0 * np.spacing(r)), (turns, err)
         assert_allclose(c.u, std, rtol=1e-5)
         assert not c.out_of_range.any()
+    far_mean, far_std = gp.predict(angle + 360.0 * 10**8, return_std=True)  # the GP itself
+    assert_allclose(far_std, std, rtol=1e-5)
+    assert np.all(np.abs((far_mean - 360.0 * 10**8) - mean) <= 1e-4 * std + 1e-5)
     edge = correct(model, angle + 360.0 * 10**9)  # float64 steps of 6.1e-5 deg there
     assert np.array_equal(edge.out_of_range, np.spacing(edge.reading) > edge.u)
     assert edge.out_of_range.any() and not edge.out_of_range.all()

@@ -219,17 +219,18 @@ class FittedGP:
     def _predict(
         self, xs: np.ndarray, return_std: bool, return_cov: bool
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        ks = self._turn(xs)  # the kernel's argument; the prior mean's stays xs
         if return_cov:
-            Ks = self.kernel(xs, self.x)
+            Ks = self.kernel(ks, self.x)
             V = solve_triangular(self.L, Ks.T, lower=True, check_finite=False)
-            cov = self.kernel(xs) - V.T @ V
+            cov = self.kernel(ks) - V.T @ V
             return self.mean(xs) + Ks @ self.alpha, 0.5 * (cov + cov.T)
         mean = np.empty(xs.shape)
         std = np.empty(xs.shape) if return_std else None
         rows = max(64, _BLOCK // max(self.x.size, 1))
         for s in range(0, xs.size, rows):
             part = xs[s : s + rows]
-            Ks = self.kernel(part, self.x)
+            Ks = self.kernel(ks[s : s + rows], self.x)
             mean[s : s + rows] = self.mean(part) + Ks @ self.alpha
             if std is not None:
                 V = solve_triangular(self.L, Ks.T, lower=True, check_finite=False)
@@ -237,16 +238,28 @@ class FittedGP:
                 std[s : s + rows] = np.sqrt(np.clip(var, 0.0, None))
         return (mean, std) if std is not None else mean
 
+    def _turn(self, x: np.ndarray) -> np.ndarray:
+        """``x`` (m,) with a periodic kernel's positions beyond the data's turn moved into
+        it by whole periods, else ``x`` itself: the kernel is the same there, and a
+        position many turns away would lose digits in it (1e9 turns away, u came out 0)."""
+        if not isinstance(self.kernel, Periodic) or not x.size:
+            return x
+        lo, p = float(self.x.min()), self.kernel.period
+        away = (x < lo) | (x >= lo + p)
+        return np.where(away, lo + np.mod(x - lo, p), x) if away.any() else x
+
     def whitened(self, x: np.ndarray) -> np.ndarray:
         """``L^-1 k(X, x)`` (n, m) for positions ``x`` (m,): posterior covariances are
         ``k(a, b) - V_a^T V_b``, and ``L^-T V`` are the targets' weights in the mean."""
-        return solve_triangular(self.L, self.kernel(self.x, x), lower=True, check_finite=False)
+        k = self.kernel(self.x, self._turn(x))
+        return solve_triangular(self.L, k, lower=True, check_finite=False)
 
     def cross_covariance(self, a: object, b: object) -> np.ndarray:
         """Posterior covariance (m, p) of the latent map between positions ``a`` (m,) and
         ``b`` (p,): ``k(a, b) - k(a, X) (K + noise)^-1 k(X, b)``."""
         xa, xb = as_positions(a, "a"), as_positions(b, "b")
-        return self.kernel(xa, xb) - self.whitened(xa).T @ self.whitened(xb)
+        k = self.kernel(self._turn(xa), self._turn(xb))
+        return k - self.whitened(xa).T @ self.whitened(xb)
 
     def posterior(self, x: object) -> Posterior:
         """Posterior mean (m,) and full covariance (m, m) of the latent map at ``x``."""

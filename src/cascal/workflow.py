@@ -359,20 +359,15 @@ def correct(model: CalibrationModel, readings: object) -> Correction:
     """
     r = as_positions(readings, "readings")
     lo, hi = model.calibrated_range
-    out = (r < lo) | (r > hi)
     device = model.fitted.device
-    if isinstance(device, FittedGP) and model.periodic:
-        # the GP's part beyond its prior mean repeats every turn: take it in the calibrated
-        # turn (a kernel at a reading many turns away loses digits: 1e9 turns away, u came
-        # out 0)
-        w = lo + np.mod(r - lo, float(model.period))  # type: ignore[arg-type]
-        fw, u = predict_many(device, w, return_std=True)
-        corrected = device.mean(r) + (fw - device.mean(w))
-        out = np.spacing(np.abs(r)) > u  # a reading too large for its correction's digits
-    elif isinstance(device, FittedGP):
+    if isinstance(device, FittedGP):  # (a periodic GP takes any turn as its angle)
         corrected, u = predict_many(device, r, return_std=True)
     else:
         corrected, u = device(r), np.full(r.shape, np.nan)
+    if model.periodic:  # a reading too large for its correction's digits
+        out = np.spacing(np.abs(r)) > u
+    else:
+        out = (r < lo) | (r > hi)
     return Correction(r, corrected, u, out)
 
 
