@@ -64,6 +64,18 @@ def test_columns_by_name_semicolons_bom_crlf_and_blank_lines(tmp_path):
         read_stage(p)
 
 
+def test_a_quoted_empty_reading_is_named_where_blank_lines_are_skipped(tmp_path):
+    blank = _write(tmp_path, "pos\n1.0\n\n  \n3.0\n")
+    assert list(read_readings(blank).rows) == [2, 5]
+    quoted = tmp_path / "q.csv"
+    quoted.write_text('pos\n1.0\n\n""\n3.0\n')
+    with pytest.raises(InputError, match=r"q\.csv, row 4, column 'pos': .*empty cell"):
+        read_readings(quoted)
+    rows = tmp_path / "rows.csv"  # two columns: an empty row stays a blank line
+    rows.write_text('a,b\n1.0,2\n"",""\n,\n3.0,4\n')
+    assert list(read_table(rows, (None, None)).rows) == [2, 5]
+
+
 def test_only_x_column_named_takes_the_other(tmp_path):
     p = _write(tmp_path, "ref,tb\n1.1,1\n2.2,2\n3.1,3\n")
     s = read_stage(p, x_column="tb")

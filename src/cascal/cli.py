@@ -383,8 +383,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
                 f"{f.stem}; rename one"
             )
     out = Path(args.output)
-    written = [out / "testbed.json", out / "fleet_summary.csv"]
-    written += [out / "devices" / f"{f.stem}.json" for f in files]
+    tb_path, summary_path = out / "testbed.json", out / "fleet_summary.csv"
+    written = [tb_path, summary_path, *(out / "devices" / f"{f.stem}.json" for f in files)]
     for path in written:  # e.g. a test-bed file kept as <out>/testbed.json
         for other in (args.testbed, *files):
             if path.exists() and same_file(path, other):
@@ -395,7 +395,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     skip = exclusions(args.exclude, [args.testbed, *files])
     (testbed,) = _read_stages([args.testbed], args, skip[:1])
     tb = fit_model([testbed], **_fit_kwargs(args))
-    tb_model = save_model(out / "testbed.json", tb)
+    tb_model = save_model(tb_path, tb)
     print(f"Test bed fitted once: {tb_model}")
     report_findings("fit-devices", fit_findings(tb), [tb.sources[0].file], tb.unit)
     level = None if args.no_screening else _level(args)
@@ -440,7 +440,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     results = fit_devices(
         tb_model, files, out / "devices", options=options, jobs=jobs, on_result=report
     )
-    summary = write_text(out / "fleet_summary.csv", _fleet_csv(results))
+    summary = write_text(summary_path, _fleet_csv(results))
     n_bad = sum(r.error is not None for r in results)
     n_sus = sum(bool(r.screening and r.screening.rows) for r in results)
     if level is not None:

@@ -13,7 +13,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from . import __version__
     from .cli import check_not_inputs, check_output
     from .errors import InputError
-    from .io.atomic import write_text
+    from .io.atomic import is_stdout, write_text
     from .io.ctable import c_header, c_identifier, table_csv
     from .io.modelfile import load_model_checksum
     from .text import range_text
@@ -23,18 +23,17 @@ def _cmd_export(args: argparse.Namespace) -> int:
     check_output(out, inputs=(args.model,))
     if args.tolerance is not None and not (0 < args.tolerance < float("inf")):
         raise InputError(f"--tolerance: expected a positive number, got {args.tolerance!r}")
-    if out.suffix not in (".h", ".csv"):
-        why = " (the format follows it: standard output has none)" if str(out) == "-" else ""
-        raise InputError(f"-o {out}: expected a .h (C header) or .csv file name{why}")
-    if args.name is not None and out.suffix != ".h":
+    fmt = _format(out, args.format)
+    if args.name is not None and fmt != "h":
         raise InputError(f"--name: names the identifiers of a C header; -o {out} is CSV")
-    name = _identifier(out.stem) if args.name is None else c_identifier(args.name)
+    stem = "table" if is_stdout(out) else out.stem
+    name = _identifier(stem) if args.name is None else c_identifier(args.name)
     model, checksum = load_model_checksum(args.model)  # one read: a pipe can be read once
     check_not_inputs(args.model, model, o=args.output)
     table = compensation(model, args.tolerance)
     unit = model.unit
     kind = "one period, wrapped" if table.period is not None else "the calibrated range"
-    if out.suffix == ".csv":
+    if fmt == "csv":
         write_text(out, table_csv(table))
     else:
         about = [
@@ -56,6 +55,22 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _format(out: Path, given: str | None) -> str:
+    """``h`` or ``csv``: ``--format`` where given, else the suffix of ``-o``."""
+    from .errors import InputError
+    from .io.atomic import is_stdout
+
+    named = {".h": "h", ".csv": "csv"}.get(out.suffix)
+    if given is not None:
+        if named is not None and named != given:
+            raise InputError(f"-o {out}: a .{named} file name, but --format {given}")
+        return given
+    if named is None:
+        why = ": add --format h or --format csv" if is_stdout(out) else ""
+        raise InputError(f"-o {out}: expected a .h (C header) or .csv file name{why}")
+    return named
+
+
 def _identifier(stem: str) -> str:
     """A prefix of C identifiers from a file stem: other characters become ``_``, and one
     that does not start with a letter gets ``table_`` in front."""
@@ -69,13 +84,22 @@ def add_export_parser(sub) -> None:
         "export", help="write a model's correction as a compensation table (C header or CSV)"
     )
     p.add_argument("model", metavar="MODEL.json")
-    p.add_argument("-o", "--output", required=True, metavar="TABLE.h|TABLE.csv")
+    p.add_argument(
+        "-o", "--output", required=True, metavar="TABLE.h|TABLE.csv", help="- for standard output"
+    )
     p.add_argument(
         "--tolerance",
         type=float,
         default=None,
         help="largest interpolation error, in the model's unit (default: a tenth of the "
         "smallest standard uncertainty; required for lut models)",
+    )
+    p.add_argument(
+        "--format",
+        choices=("h", "csv"),
+        default=None,
+        help="h (C header) or csv (default: from the suffix of -o; needed with -o -, "
+        "standard output)",
     )
     p.add_argument("--name", default=None, help="prefix of the C identifiers (default: file stem)")
     p.set_defaults(func=_cmd_export)

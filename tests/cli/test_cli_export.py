@@ -33,3 +33,21 @@ def test_header_and_csv_hold_the_library_table(linear_model, tmp_path):
     assert res.returncode == 0, res.stderr
     loose = re.search(r"#define t_N (\d+)\n", (tmp_path / "t.h").read_text())
     assert int(loose.group(1)) < table.n  # a looser tolerance, a smaller table
+
+
+def test_standard_output_takes_the_format_from_the_option(linear_model, tmp_path):
+    """``-o -`` writes the table to standard output, the messages to standard error; the
+    format comes from ``--format`` there and must agree with a file's suffix."""
+    res = run_cascal("export", linear_model, "-o", "-", "--format", "csv")
+    assert res.returncode == 0, res.stderr
+    assert run_cascal("export", linear_model, "-o", tmp_path / "t.csv").returncode == 0
+    assert res.stdout == (tmp_path / "t.csv").read_text()
+    assert "nodes" in res.stderr
+    res = run_cascal("export", linear_model, "-o", "-", "--format", "h", "--name", "x1")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.startswith("/*") and "int x1_correct(double reading" in res.stdout
+    res = run_cascal("export", linear_model, "-o", "-")
+    assert res.returncode == 2 and "add --format h or --format csv" in res.stderr
+    res = run_cascal("export", linear_model, "-o", tmp_path / "t.csv", "--format", "h")
+    assert res.returncode == 2 and "a .csv file name, but --format h" in res.stderr
+    assert "Traceback" not in res.stderr

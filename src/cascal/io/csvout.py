@@ -46,9 +46,9 @@ def auto_decimals(values: Sequence[np.ndarray], u: np.ndarray | None = None) -> 
 def format_columns(columns: Sequence[np.ndarray], decimals: int) -> bytes | None:
     """CSV rows (no header) of equal-length columns, as UTF-8 bytes.
 
-    Float columns get ``decimals`` decimals: each value is rounded to the nearest multiple
-    of ``10**-decimals`` (up to the rounding of ``value * 10**decimals`` in float64); NaN
-    becomes an empty cell. Integer and boolean columns are written as integers, and their
+    Float columns get ``decimals`` decimals, correctly rounded as Python's ``format``
+    rounds them (half-way cases of the exact binary value to even); NaN becomes an empty
+    cell. Integer and boolean columns are written as integers, and their
     masked entries (a :class:`numpy.ma.MaskedArray`) as empty cells. The text is
     built by integer arithmetic on whole columns, in blocks of rows on several threads.
     Returns None when a value is too large for exact integers
@@ -77,10 +77,16 @@ def _format_block(cols: list[np.ndarray], decimals: int) -> bytes | None:
         k = 0 if v.dtype.kind in "biu" else decimals
         v = np.ma.filled(v.astype(float), np.nan)
         ok = np.isfinite(v)
-        q = np.rint((np.abs(v) if ok.all() else np.where(ok, np.abs(v), 0.0)) * 10.0**k)
+        a = np.abs(v) if ok.all() else np.where(ok, np.abs(v), 0.0)
+        scaled = a * 10.0**k
+        q = np.rint(scaled)
         if q.size and float(q.max()) >= 2.0**53:
             return None
         q = q.astype(np.int64)
+        if k:  # near a half-way point the product's rounding may tip it: round exactly
+            near = np.flatnonzero(np.abs(np.abs(scaled - q) - 0.5) <= scaled * 2.0**-50)
+            for i in near.tolist():
+                q[i] = int(f"{float(a[i]):.{k}f}".replace(".", ""))
         nd = len(str((int(q.max()) if q.size else 0) // 10**k))
         neg = (v < 0) & (q > 0)
         plans.append((k, q, nd, neg if neg.any() else None, None if ok.all() else ~ok))

@@ -422,6 +422,7 @@ def _slow(
     seen: set[int] = set()
     width = len(header)
     last = reader.line_num
+    lines: list[str] = []
     for cells in _checked(reader, name):
         row = reader.line_num
         start, last = last + 1, row
@@ -439,7 +440,9 @@ def _slow(
             )
         row = start  # a record of several lines is named by its first
         if not cells or all(not c.strip() for c in cells):
-            continue  # blank line
+            if width > 1 or '"' not in _line(text, row, lines):
+                continue  # blank line; a spreadsheet writes an empty row as ",,"
+            # a lone quoted empty cell ("") is a reading left empty: _number names it
         seen.add(row)
         if row in skip:
             continue
@@ -461,6 +464,13 @@ def _slow(
     _check_excluded(skip, seen, name)
     values = np.array(out, dtype=float).reshape(len(out), width)
     return values, np.array(rows, dtype=np.int64)
+
+
+def _line(text: str, row: int, lines: list[str]) -> str:
+    """Line ``row`` (1-based) of ``text``; ``lines`` caches the split (empty until needed)."""
+    if not lines:
+        lines.extend(text.split("\n"))
+    return lines[row - 1]
 
 
 def _unclosed(text: str, start: int, delim: str) -> bool:
