@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import hashlib
 import re
+import warnings
 
 import numpy as np
 import pytest
 
-from cascal.errors import InputError
+from cascal.errors import DataWarning, InputError
 from cascal.io import data as data_mod
 from cascal.io.csvout import write_columns
 from cascal.io.data import read_readings, read_stage, read_table
@@ -297,10 +298,32 @@ def test_a_quote_never_closed_is_named_where_it_opens(tmp_path):
         read_stage(_write(tmp_path, "a,b\n" + closed_later))
     assert exc.value.row == 5
     p = _write(tmp_path, 'a,b\n1,1\n"2\n",2\n3,3\n4,4\n')
-    assert read_stage(p).x.tolist() == [1.0, 2.0, 3.0, 4.0]
-    assert read_stage(p).rows.tolist() == [2, 3, 5, 6]  # a record is named by its first line
+    with pytest.warns(DataWarning, match=r"s\.csv, rows 3 to 4: read as one record"):
+        assert read_stage(p).x.tolist() == [1.0, 2.0, 3.0, 4.0]
+    with pytest.warns(DataWarning):
+        assert read_stage(p).rows.tolist() == [2, 3, 5, 6]  # a record named by its first line
     p = _write(tmp_path, 'a,b,note\n1,1,x\n2,0,"line1\nline2\nline3"\n3,3,y\n4,4,z\n')
-    with pytest.raises(InputError) as exc:
+    with pytest.raises(InputError) as exc, pytest.warns(DataWarning):
         read_stage(p, x_column="a", y_column="b")
     assert exc.value.row == 3  # (a review's case: it was named row 5, its last line)
-    assert read_stage(p, x_column="a", y_column="b", exclude=[3]).x.tolist() == [1, 3, 4]
+    with pytest.warns(DataWarning, match="rows 3 to 5"):
+        assert read_stage(p, x_column="a", y_column="b", exclude=[3]).x.tolist() == [1, 3, 4]
+
+
+def test_a_stray_quote_that_swallows_rows_of_a_note_column_is_warned_of(tmp_path):
+    """A review's case: a quote opened in a text column that is not read and closed rows
+    later leaves the right number of cells, so the rows between vanish into one note. They
+    are read as CSV says, with a warning naming the rows; a file without such a record
+    gives none."""
+    rows = [f"{k / 10},{k / 10 + 0.001 * (k % 3)},ok" for k in range(12)]
+    rows[2] = rows[2].replace(",ok", ',"stray')
+    rows[5] = rows[5].replace(",ok", ',x"')
+    rows[8] = rows[8].replace(",ok", ',"a\nb"')
+    p = _write(tmp_path, "x,y,note\n" + "\n".join(rows) + "\n")
+    with pytest.warns(DataWarning, match=r"rows 4 to 7: .* \(and 1 more record like it\)"):
+        s = read_stage(p, x_column="x", y_column="y")
+    assert s.rows.tolist() == [2, 3, 4, 8, 9, 10, 12, 13, 14]
+    clean = _write(tmp_path, "x,y,note\n" + "\n".join(r.replace('"', "") for r in rows[:8]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read_stage(clean, x_column="x", y_column="y").rows.size == 8

@@ -11,6 +11,7 @@ import contextlib
 import os
 import sys
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -431,6 +432,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             )
             for line in screening_lines(r.screening, tb.unit) if r.screening else ():
                 warn("fit-devices", line)
+            for line in r.warnings:
+                warn("fit-devices", line)
             stage_files = [tb.sources[0].file, r.file]
             report_findings("fit-devices", r.findings, stage_files, tb.unit)
             if r.source is not None:
@@ -656,6 +659,20 @@ def warn_cautions(command: str, model) -> None:
 
     for line in caution_lines(model):
         warn(command, line)
+
+
+def _show_warning(command: str, default: Callable) -> Callable:
+    """A ``warnings.showwarning`` that prints cascal's own warnings as :func:`warn` lines
+    and leaves the others to ``default``."""
+    from .errors import DataWarning, JitterWarning
+
+    def show(message, category, *args, **kwargs) -> None:
+        if issubclass(category, (DataWarning, JitterWarning)):
+            warn(command, str(message))
+        else:
+            default(message, category, *args, **kwargs)
+
+    return show
 
 
 def warn(command: str, message: str) -> None:
@@ -955,7 +972,11 @@ def _main(argv: Sequence[str] | None) -> int:
 
     pin_blas()  # one BLAS thread: the same numbers on every machine (fits run so anyway)
     try:  # an output written to stdout keeps it: the command's own lines go to stderr
-        with contextlib.redirect_stdout(sys.stderr) if to_stdout else contextlib.nullcontext():
+        with (
+            contextlib.redirect_stdout(sys.stderr) if to_stdout else contextlib.nullcontext(),
+            warnings.catch_warnings(),
+        ):
+            warnings.showwarning = _show_warning(args.command, warnings.showwarning)
             return func(args)
     except WorkerError as exc:  # not the input: the machines failed
         print(f"cascal {args.command}: error: {exc}", file=sys.stderr)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 __all__ = [
     "CascalError",
+    "DataWarning",
     "InputError",
     "JitterWarning",
     "ModelFileError",
@@ -63,3 +64,7 @@ class WorkerError(CascalError):
 
 class JitterWarning(RuntimeWarning):
     """A matrix needed jitter on its diagonal to factorise: the result is the jittered one's."""
+
+
+class DataWarning(UserWarning):
+    """Input data read, but in a way the user should check (names the file and rows)."""

@@ -12,8 +12,9 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing
 import os
+import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,7 @@ from scipy.linalg import solve_triangular
 
 from .cascade import Cascade
 from .compensation import MAX_NODES, CompensationTable, compensation_table
-from .errors import CascalError, InputError, NumericalError
+from .errors import CascalError, DataWarning, InputError, JitterWarning, NumericalError
 from .gp import FittedGP
 from .io.data import Source, StageData, read_stage
 from .io.modelfile import CalibrationModel, load_model, save_model
@@ -681,6 +682,8 @@ class DeviceResult:
         screening: Outlier screening of the device's file, or None when skipped.
         findings: What makes the device stage's u doubtful (:func:`fit_findings`).
         source: The device file's provenance (its columns among it), or None.
+        warnings: cascal's warnings while reading and fitting it (:class:`DataWarning`,
+            :class:`JitterWarning`), as text.
     """
 
     device: str
@@ -695,6 +698,7 @@ class DeviceResult:
     screening: StageScreening | None = None
     findings: tuple[BoundHit | StageOffset, ...] = ()
     source: Source | None = None
+    warnings: tuple[str, ...] = ()
 
 
 def summarize_device(model: CalibrationModel) -> dict[str, object]:
@@ -771,6 +775,20 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
     """Fit one device (runs in a worker process). Any failure becomes a skipped result (a
     fleet does not stop for one device), and a model of an earlier run at ``out`` goes."""
     name = Path(device).stem
+    with warnings.catch_warnings(record=True) as caught:  # to the summary, not a worker's stderr
+        warnings.simplefilter("always", DataWarning)
+        warnings.simplefilter("always", JitterWarning)
+        res = _device_fit(testbed, device, out, options, name)
+    ours = [w for w in caught if issubclass(w.category, (DataWarning, JitterWarning))]
+    for w in caught:  # the others as usual
+        if w not in ours:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    return replace(res, warnings=tuple(str(w.message) for w in ours)) if ours else res
+
+
+def _device_fit(
+    testbed: str, device: str, out: str, options: dict[str, object], name: str
+) -> DeviceResult:
     try:
         prefix = load_model(testbed)
         data = read_stage(

@@ -187,3 +187,26 @@ def test_outputs_never_overwrite_the_test_bed_or_a_device_file(fleet, tmp_path):
                      "--x-column", name, "--y-column", name)  # fmt: skip
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     assert f"{tb}, row 1: column {name!r} is named twice" in res.stderr
+
+
+def test_a_record_spanning_lines_is_warned_of_by_fit_and_fit_devices(fleet, tmp_path):
+    """A quoted cell that spans lines (a stray quote could make one) is named in one
+    warning line by ``fit`` and, from its worker process, by ``fit-devices``; no Python
+    warning text."""
+    _, tb, folder, _, _ = fleet
+    devices = tmp_path / "devices"
+    devices.mkdir()
+    head, *rows = (folder / "device02.csv").read_text().splitlines()
+    a, b = rows[3].split(",")
+    rows[3] = f'{a},"{b}\n"'  # file rows 5 and 6: one record
+    (devices / "noted.csv").write_text("\n".join([head, *rows]) + "\n")
+    (devices / "plain.csv").write_text((folder / "device01.csv").read_text())  # two: a pool
+    for args in (
+        ("fit-devices", tb, "--devices", devices, "-o", tmp_path / "out", "--jobs", "2"),
+        ("fit", tb, devices / "noted.csv", "-o", tmp_path / "m.json"),
+    ):
+        res = run_cascal(*args, "--restarts", "2")
+        assert res.returncode == 0, res.stderr
+        assert f"cascal {args[0]}: warning: " in res.stderr
+        assert "noted.csv, rows 5 to 6: read as one record" in res.stderr
+        assert "DataWarning" not in res.stderr and "warnings.warn" not in res.stderr

@@ -16,6 +16,7 @@ import io
 import math
 import os
 import re
+import warnings
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cascade import Stage
-from ..errors import InputError
+from ..errors import DataWarning, InputError
 from ..validation import MIN_POINTS, aggregate_repeats, unwrap
 
 __all__ = [
@@ -423,6 +424,7 @@ def _slow(
     width = len(header)
     last = reader.line_num
     lines: list[str] = []
+    joined: list[tuple[int, int]] = []
     for cells in _checked(reader, name):
         row = reader.line_num
         start, last = last + 1, row
@@ -438,6 +440,8 @@ def _slow(
                 file=name,
                 row=start,
             )
+        if row > start:  # a quoted cell spans lines: a note, or a stray quote
+            joined.append((start, row))
         row = start  # a record of several lines is named by its first
         if not cells or all(not c.strip() for c in cells):
             if width > 1 or '"' not in _line(text, row, lines):
@@ -462,6 +466,15 @@ def _slow(
         out.append(vals)
         rows.append(row)
     _check_excluded(skip, seen, name)
+    if joined:
+        (a, b), more = joined[0], len(joined) - 1
+        others = f" (and {more} more record{'s' * (more > 1)} like it)" if more else ""
+        warnings.warn(
+            f"{name}, rows {a} to {b}: read as one record, a quoted cell spanning the "
+            f"lines{others}; if a stray quote joined them, those rows are not read",
+            DataWarning,
+            stacklevel=4,
+        )
     values = np.array(out, dtype=float).reshape(len(out), width)
     return values, np.array(rows, dtype=np.int64)
 
