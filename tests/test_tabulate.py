@@ -62,3 +62,59 @@ def test_no_table_without_uncertainty_to_compare_with(rng):
     assert tabulate(gp, 0.0, 1.0, max_nodes=4097) is None
     r = np.linspace(0, 1, 25000)
     np.testing.assert_array_equal(predict_many(gp, r), gp.predict(r))
+
+
+def _study_gps(n_trials):
+    """The stage-B GPs (bayes and homoscedastic) of the study's first trials, with J's nodes."""
+    from cascal.cascade import Cascade
+    from cascal.montecarlo import trial_rng
+    from cascal.simulation import j_reference, simulate_trial
+
+    for i in range(n_trials):
+        trial = simulate_trial(trial_rng(0, i))
+        grid, _ = j_reference(trial)
+        bayes = Cascade([trial.d2, trial.d1], "bayes", seed=i).fit()
+        homo = Cascade([trial.d2, trial.d1], "homoscedastic", seed=i).fit(first=bayes.models[0])
+        yield trial, grid, bayes.device
+        yield trial, grid, homo.device
+
+
+def test_chebyshev_mean_agrees_with_exact_prediction_to_its_rounding():
+    """On the study's stage-B GPs the interpolant takes the place of the exact mean at J's
+    2001 nodes: it differs from it by no more than the exact sum's own rounding (eps times
+    sum |alpha_i k_i|, which dominates where alpha is large) or 1e-12 of the correction,
+    and J moves by less than 1e-8 of itself."""
+    from cascal.simulation import cost_j
+
+    for trial, grid, gp in _study_gps(6):
+        K = gp.kernel(grid, gp.x)
+        exact = gp.mean(grid) + K @ gp.alpha
+        rounding = np.finfo(float).eps * np.abs(K) @ np.abs(gp.alpha)
+        cheb = tab_mod.chebyshev_mean(gp, grid)
+        scale = np.max(np.abs(exact - gp.mean(grid)))
+        assert np.all(np.abs(cheb - exact) <= 8 * np.maximum(rounding, 1e-12 * scale))
+        ref = cost_j(trial, corrected=exact)
+        assert abs(cost_j(trial, corrected=cheb) - ref) <= 1e-8 * ref
+        assert not np.array_equal(cheb, exact)  # the interpolant, not the fallback
+
+
+def test_chebyshev_mean_is_exact_where_a_polynomial_cannot_follow(rng):
+    """A length scale short against the range (coefficients decay slowly), a kernel of
+    limited smoothness or a periodic kernel: the exact mean, bit for bit."""
+    x = np.linspace(0.0, 1.0, 200)
+    y = x + 1e-3 * np.sin(150 * x) + rng.normal(0, 1e-6, 200)
+    short = fit_gp(x, y, n_restarts=2)
+    assert short.hyperparameters["length_scale"] < 0.03
+    grid = np.linspace(0.0, 1.0, 2001)
+    assert np.array_equal(tab_mod.chebyshev_mean(short, grid), short.predict(grid))
+    for kernel in ("matern32", "periodic"):
+        gp = _gp(kernel, rng, 360.0 if kernel == "periodic" else None)
+        g = np.linspace(float(gp.x.min()), float(gp.x.max()), 2001)
+        assert np.array_equal(tab_mod.chebyshev_mean(gp, g), gp.predict(g))
+
+
+def test_clenshaw_sums_chebyshev_series(rng):
+    coef = rng.normal(size=40) / np.arange(1, 41) ** 2
+    s = np.linspace(-1.0, 1.0, 501)
+    want = np.polynomial.chebyshev.chebval(s, coef)
+    np.testing.assert_allclose(tab_mod._clenshaw(coef, s), want, rtol=0, atol=1e-14)
