@@ -117,3 +117,13 @@ def test_a_range_text_keeps_exact_ends_and_order():
     for lo, hi in [(1000.0000001, 1000.0000004), (123456789012.5, 123456789987.0), (1.5, 1.5)]:
         a, b = (float(v) for v in range_text(lo, hi).strip("[]").split(", "))
         assert lo <= a <= b <= hi
+
+
+def test_many_cells_near_half_way_are_left_to_python(tmp_path):
+    """Beyond 2^51 every scaled value is within its rounding of a half-way point: the block
+    is formatted in Python, with the same text."""
+    v = 7e14 + np.arange(2000) * 0.25  # 7.0e15 after one decimal: beyond 2^51
+    assert format_columns([v], 1) is None
+    assert format_columns([v[:10]], 1) is not None  # a few: rounded one by one
+    write_columns(tmp_path / "o.csv", {"a": v}, decimals=1)
+    assert (tmp_path / "o.csv").read_text().splitlines()[1:] == [f"{x:.1f}" for x in v]

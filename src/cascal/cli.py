@@ -420,6 +420,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         rate = done[0] / max(time.perf_counter() - t0, 1e-9)
         eta = (len(files) - done[0]) / rate
         where = f"[{done[0]}/{len(files)}, {rate:.2g} devices/s, ETA {eta:.0f} s]"
+        for line in r.warnings:  # (a record joining rows may be why a device is skipped)
+            warn("fit-devices", line)
         if r.error:
             warn("fit-devices", f"{where} skipped device {r.device}: {r.error}")
         else:
@@ -431,8 +433,6 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
                 flush=True,
             )
             for line in screening_lines(r.screening, tb.unit) if r.screening else ():
-                warn("fit-devices", line)
-            for line in r.warnings:
                 warn("fit-devices", line)
             stage_files = [tb.sources[0].file, r.file]
             report_findings("fit-devices", r.findings, stage_files, tb.unit)

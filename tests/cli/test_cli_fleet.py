@@ -210,3 +210,10 @@ def test_a_record_spanning_lines_is_warned_of_by_fit_and_fit_devices(fleet, tmp_
         assert f"cascal {args[0]}: warning: " in res.stderr
         assert "noted.csv, rows 5 to 6: read as one record" in res.stderr
         assert "DataWarning" not in res.stderr and "warnings.warn" not in res.stderr
+    # a device skipped for too few rows: the warning says why (a review's case)
+    (devices / "short.csv").write_text(f'{head}\n0.1,0.1\n0.2,"0.2\n"\n')
+    res = run_cascal("fit-devices", tb, "--devices", devices, "-o", tmp_path / "o2",
+                     "--jobs", "2", "--restarts", "2")  # fmt: skip
+    assert res.returncode == 1, res.stderr
+    assert "short.csv, rows 3 to 4: read as one record" in res.stderr
+    assert "skipped device short: " in res.stderr and "at least 3 data rows" in res.stderr

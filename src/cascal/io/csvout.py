@@ -22,6 +22,8 @@ __all__ = ["auto_decimals", "format_columns", "write_columns"]
 
 #: Above this many rows, CSV text is built on several threads.
 _THREADED_ROWS = 200_000
+#: Cells rounded one by one in Python (half-way cases) before a block is left to Python.
+_EXACT_CELLS = 256
 #: The four decimal digits of 0..9999 as ASCII, one column per number: shape (4, 10000).
 _DIGITS4T = np.array([list(f"{i:04d}".encode()) for i in range(10000)], dtype=np.uint8).T.copy()
 
@@ -52,7 +54,9 @@ def format_columns(columns: Sequence[np.ndarray], decimals: int) -> bytes | None
     masked entries (a :class:`numpy.ma.MaskedArray`) as empty cells. The text is
     built by integer arithmetic on whole columns, in blocks of rows on several threads.
     Returns None when a value is too large for exact integers
-    (``|value| * 10**decimals >= 2**53``).
+    (``|value| * 10**decimals >= 2**53``), or when more than a few values lie so near a
+    half-way point that they need Python's exact rounding (beyond ``2**51`` every one
+    does): then format the cells in Python.
 
     Args:
         columns: Arrays, each shape (n,).
@@ -84,7 +88,9 @@ def _format_block(cols: list[np.ndarray], decimals: int) -> bytes | None:
             return None
         q = q.astype(np.int64)
         if k:  # near a half-way point the product's rounding may tip it: round exactly
-            near = np.flatnonzero(np.abs(np.abs(scaled - q) - 0.5) <= scaled * 2.0**-50)
+            near = np.flatnonzero(np.abs(np.abs(scaled - q) - 0.5) <= scaled * 2.0**-51)
+            if near.size > _EXACT_CELLS + n // 64:  # (beyond 2^51: every cell is near)
+                return None  # the caller formats every cell in Python
             for i in near.tolist():
                 q[i] = int(f"{float(a[i]):.{k}f}".replace(".", ""))
         nd = len(str((int(q.max()) if q.size else 0) // 10**k))
@@ -147,7 +153,8 @@ def write_columns(
 
 
 def _write_slow(path: str | os.PathLike, columns: dict[str, np.ndarray], decimals: int) -> Path:
-    """As :func:`write_columns`, one cell at a time: for values beyond 2^53 / 10^decimals.
+    """As :func:`write_columns`, one cell at a time: for values beyond 2^53 / 10^decimals
+    (or many near half-way points, see :func:`format_columns`).
     Those up to 1e16 keep the decimals too; larger ones are written in full (``1e+300``)."""
 
     def cell(x: float | int | None) -> str:
