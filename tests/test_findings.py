@@ -66,6 +66,27 @@ def test_three_points_that_interpolate_at_any_noise_are_named(tmp_path):
     assert hp["noise_variance"] / hp["variance"] == pytest.approx(1e-10, rel=1e-3)
 
 
+def test_few_points_read_as_a_straight_line_are_named_and_many_are_not(tmp_path):
+    """A review's case: the first, middle and last of the demo's reference points end with
+    the length scale at its upper bound (a straight correction plus 16 mm of noise; 59 % of
+    the device's check points inside U), which was not named. Below 12 points it is; 40
+    noisy points along a straight correction that end there too are not."""
+    from cascal.text import finding_line
+
+    x = [-0.045103644571, 0.548719057542, 0.978728600451]
+    y = [-0.000043643525, 0.601419670694, 1.000035145508]
+    model = fit_model([_stage(tmp_path / "ref3.csv", x, y)])
+    assert fit_findings(model) == [BoundHit(0, "length_scale", "upper", 3)]
+    line = finding_line(fit_findings(model)[0], "ref3.csv", "m")
+    assert "straight correction plus noise" in line and "3 points" in line
+    rng = np.random.default_rng(2)
+    xs = np.linspace(0.0, 1.0, 40)  # a scale error of 1e-4 and an offset, with noise
+    ys = xs * (1 + 1e-4) + 2e-3 + rng.normal(0.0, 1e-3, 40)
+    straight = fit_model([_stage(tmp_path / "line.csv", xs, ys)], n_restarts=2)
+    assert straight.fitted.models[0].optimization.at_bounds() == [("length_scale", "upper")]
+    assert fit_findings(straight) == []
+
+
 def test_a_loaded_model_shows_the_findings_of_its_fit(tmp_path, smooth):
     """A review's case: the report and ``info`` of a model from three reference points
     said nothing of what ``fit`` had warned, since a model file stores no search bounds.

@@ -71,6 +71,13 @@ def finding_line(finding, file: str, unit: str) -> str:
             "accuracy and u its meaning: fit with --mean offset, or zero the readings"
         )
     name = finding.parameter.replace("_", " ")
+    if finding.parameter.endswith("length_scale") and finding.side == "upper":
+        return (
+            f"{file}: the fitted {name} sits at the upper end of its range: the fit reads "
+            f"the {finding.points} points as a straight correction plus noise, and so few "
+            "cannot show whether the corrections bend between them; u cannot be trusted: "
+            "measure more points"
+        )
     if finding.parameter.endswith("length_scale"):
         return (
             f"{file}: the fitted {name} sits at the lower end of its range: the corrections "

@@ -254,6 +254,12 @@ OFFSET_RATIO = 1000.0
 NOISE_ONLY_RATIO = 1e4
 
 
+#: Points from which a stage whose length scale ends at its upper bound (a straight
+#: correction plus noise) is taken at its word; below, too few to tell (3 of the demo's
+#: reference points: 59 % of its check points within U).
+STRAIGHT_MIN_POINTS = 12
+
+
 @dataclass(frozen=True, slots=True)
 class BoundHit:
     """A fitted stage hyperparameter at a bound of its search range (see
@@ -299,8 +305,9 @@ def fit_findings(model: CalibrationModel, *, first: int = 0) -> list[BoundHit | 
     readings taken for noise) or, with no known noise, at its lower bound (the fit
     interpolates; the noise is not estimated); a profiled noise over
     :data:`NOISE_ONLY_RATIO` times the variance counts as at its upper bound. A length
-    scale at its upper bound (a straight correction) and a learned noise at its lower bound
-    on top of a known noise are not listed. A model file stores no bounds: loading puts
+    scale at its upper bound (the points read as a straight correction plus noise) is
+    listed for stages of fewer than :data:`STRAIGHT_MIN_POINTS` points only, and a learned
+    noise at its lower bound on top of a known noise not at all. A model file stores no bounds: loading puts
     them back for files of cascal 0.4.2 and later (:func:`~cascal.gp.restore_bounds`);
     an older file's model shows offsets only.
     """
@@ -324,8 +331,9 @@ def fit_findings(model: CalibrationModel, *, first: int = 0) -> list[BoundHit | 
         ):
             hits.append(("noise_ratio", "upper"))
         for name, side in hits:
-            if name.endswith("length_scale") and side == "upper":
-                continue
+            straight = name.endswith("length_scale") and side == "upper"
+            if straight and gp.x.size >= STRAIGHT_MIN_POINTS:
+                continue  # a straight correction (plus noise): the points can show it
             noise = name in ("noise_variance", "noise_ratio")
             if not (noise and side == "lower" and gp.noise is not None):
                 out.append(BoundHit(k, name, side, gp.x.size))
