@@ -327,3 +327,29 @@ def test_a_stray_quote_that_swallows_rows_of_a_note_column_is_warned_of(tmp_path
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert read_stage(clean, x_column="x", y_column="y").rows.size == 8
+
+
+def test_columns_in_different_units_are_warned_of(tmp_path):
+    """A user review's case: a reference column in mm beside test-bed readings in m was
+    fitted silently (corrections of 575 'm' on a 1 m axis). Spans 1000 times apart are
+    named; a scale error of a few per cent and an offset between the zeros are not."""
+    x = np.linspace(0.0, 1.0, 12)
+    mm = _write(tmp_path, "testbed,reference\n" + "".join(f"{a},{a * 1000}\n" for a in x))
+    with pytest.warns(DataWarning, match=r"'reference' span 1000 times .* \(mm and m\)"):
+        read_stage(mm)
+    fine = x * 1.03 + 10.0
+    text = "".join(f"{a},{b}\n" for a, b in zip(x, fine, strict=True))
+    ok = _write(tmp_path, "testbed,reference\n" + text)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_stage(ok)
+
+
+def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
+    """A user review's case: a device reading mistyped (divided by 10) moved its point,
+    and the message blamed the other column. Either may be wrong: both are named."""
+    rows = "".join(f"{k / 10},{k / 10 + 0.01}\n" for k in range(1, 10))
+    p = _write(tmp_path, "device,testbed\n" + rows.replace("0.6,0.61", "0.06,0.61"))
+    with pytest.raises(InputError, match=r"mistyped cell \(of testbed or of device\)") as exc:
+        read_stage(p)
+    assert exc.value.column is None

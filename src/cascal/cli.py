@@ -324,9 +324,12 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     where = f"outside the calibrated range {range_text(lo, hi)} {model.unit}"
     if model.periodic:  # every turn is calibrated: only a reading too large is flagged
         where = "so far out that a float64 holds them less finely than their u"
+    unit_hint = ""
+    if n_out == out.size > 1 and not model.periodic:  # every reading: the unit, or the file?
+        unit_hint = f"; all of them: readings in another unit than the model's ({model.unit})?"
     if n_out and args.out_of_range == "error":
         first = int(table.rows[np.argmax(out)])
-        raise InputError(f"{n_out} reading(s) {where}", file=args.readings, row=first)
+        raise InputError(f"{n_out} reading(s) {where}{unit_hint}", file=args.readings, row=first)
     corrected, u = c.corrected, c.u
     if n_out and args.out_of_range == "empty":
         corrected, u = np.where(out, np.nan, corrected), np.where(out, np.nan, u)
@@ -349,7 +352,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
         warn(
             "correct",
             f"{n_out} of {out.size} readings lie {where} (first: {args.readings}, row {first}); "
-            f"flagged in column out_of_range and {what}",
+            f"flagged in column out_of_range and {what}{unit_hint}",
         )
     if not gp:
         warn("correct", "method lut gives no uncertainty: columns u and U are left empty")

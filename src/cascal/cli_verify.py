@@ -54,7 +54,10 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     if model.periodic:  # every turn is calibrated
         where = f"the range a float64 holds to better than u (any turn of {model.period:g} {unit})"
     if s["points"] == 0:
-        raise InputError(f"no check point lies inside {where}", file=args.check)
+        hint = (
+            "" if model.periodic else f": check points in another unit than the model's ({unit})?"
+        )
+        raise InputError(f"no check point lies inside {where}{hint}", file=args.check)
     fig = None
     if args.plot is not None:  # drawn before anything is written
         from .report import verification_figure

@@ -307,9 +307,9 @@ def fit_findings(model: CalibrationModel, *, first: int = 0) -> list[BoundHit | 
     :data:`NOISE_ONLY_RATIO` times the variance counts as at its upper bound. A length
     scale at its upper bound (the points read as a straight correction plus noise) is
     listed for stages of fewer than :data:`STRAIGHT_MIN_POINTS` points only, and a learned
-    noise at its lower bound on top of a known noise not at all. A model file stores no bounds: loading puts
-    them back for files of cascal 0.4.2 and later (:func:`~cascal.gp.restore_bounds`);
-    an older file's model shows offsets only.
+    noise at its lower bound on top of a known noise not at all. A model file stores no
+    bounds: loading puts them back for files of cascal 0.4.2 and later
+    (:func:`~cascal.gp.restore_bounds`); an older file's model shows offsets only.
     """
     out: list[BoundHit | StageOffset] = []
     for k in range(first, len(model.fitted.models)):

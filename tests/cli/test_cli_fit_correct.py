@@ -275,3 +275,17 @@ def test_a_stage_file_with_its_columns_swapped_is_named(tmp_path):
         f.write_text("x,y\n" + f.read_text().split("\n", 1)[1])
     res = run_cascal("fit", ref, swapped, "-o", tmp_path / "g.json", "--no-screening")
     assert res.returncode == 0 and "swapped" not in res.stderr, res.stderr
+
+
+def test_readings_all_outside_the_range_suggest_a_unit(linear_model, tmp_path):
+    """A user review's case: readings in mm against a model in m were all flagged, one by
+    one, with no word of the likely cause; the message now asks about the unit."""
+    mm = tmp_path / "mm.csv"
+    mm.write_text("reading\n300.0\n450.5\n600.25\n")
+    res = run_cascal("correct", linear_model, mm, "-o", tmp_path / "c.csv")
+    assert res.returncode == 0, res.stderr
+    assert "3 of 3 readings lie outside" in res.stderr
+    assert "all of them: readings in another unit than the model's (m)?" in res.stderr
+    res = run_cascal("correct", linear_model, mm, "-o", tmp_path / "e.csv", "--out-of-range",
+                     "error")  # fmt: skip
+    assert res.returncode == 2 and "another unit than the model's (m)?" in res.stderr

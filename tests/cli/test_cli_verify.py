@@ -146,7 +146,10 @@ def bad_runs(linear_model, check_file, tmp_path_factory):
         "nan": ([linear_model, nan], ["nan.csv", "row 3"]),
         "one_column": ([linear_model, one], ["one.csv", "--x-column"]),
         "no_column": ([linear_model, check_file, "--y-column", "truth"], ["truth"]),
-        "all_outside": ([linear_model, far], ["far.csv", "no check point lies inside"]),
+        "all_outside": (
+            [linear_model, far],
+            ["far.csv", "no check point lies inside", "in another unit than the model's (m)?"],
+        ),
         "reading_u": ([linear_model, check_file, "--reading-u", "-1"], ["--reading-u"]),
         "reference_u": ([linear_model, check_file, "--reference-u", "inf"], ["--reference-u"]),
         "mpe": ([linear_model, check_file, "--mpe", "0"], ["--mpe"]),

@@ -271,18 +271,41 @@ def read_stage(
             else "are the points closer together than the readings' noise? Then repeat "
             "readings at fewer, wider-spaced positions (repeats are averaged)"
         )
-        if bad.size == 1:
-            hint = "; a mistyped cell, or rows out of step?"
+        if bad.size == 1:  # (a wrong reading of xn moves its point among others)
+            hint = f"; a mistyped cell (of {yn} or of {xn}), or rows out of step?"
         raise InputError(
             f"{value(k + 1)} is not above {value(k)}; "
             "the more accurate reading must increase with the calibrated one (one-to-one, "
             f"the paper's bijectivity assumption){hint}",
             file=name,
             row=int(table.rows[culprit]),
-            column=yn,
         )
+    _check_units(rep.x, rep.y, table.source.columns, name)
     noise = rep.noise if np.any(rep.counts > 1) else None
     return StageData(rep.x, rep.y, noise, rep.counts, rows, table.source, x, y, table.rows)
+
+
+#: Ratio of the two columns' spans beyond which (either way) a stage file is warned of:
+#: two readings of one position differ by far less (a scale error of 1e-3 is large).
+UNIT_RATIO = 2.0
+
+
+def _check_units(x: np.ndarray, y: np.ndarray, columns: tuple[str, ...], name: str) -> None:
+    """Warn (:class:`DataWarning`) where the more accurate readings ``y`` span over
+    :data:`UNIT_RATIO` times, or under its inverse, the span of ``x``: the columns in two
+    units (mm and m), or not the same position's readings."""
+    sx, sy = float(x[-1] - x[0]), float(y[-1] - y[0])  # both increasing
+    if not (sx > 0 and sy > 0) or 1 / UNIT_RATIO <= sy / sx <= UNIT_RATIO:
+        return
+    xn, yn = columns
+    warnings.warn(
+        f"{name}: the readings of column {yn!r} span {sy / sx:.4g} times those of column "
+        f"{xn!r}, where two readings of one position differ little: are the columns in "
+        "different units (mm and m)? The corrections are taken as their difference, in "
+        "one unit",
+        DataWarning,
+        stacklevel=3,
+    )
 
 
 def read_readings(path: str | os.PathLike, *, column: str | None = None) -> Table:
