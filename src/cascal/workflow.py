@@ -772,10 +772,15 @@ def fit_devices(
             done(i, _device_job(*a))
     else:
         ctx = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=min(jobs, len(devices)), mp_context=ctx) as ex:
+        ex = cf.ProcessPoolExecutor(max_workers=min(jobs, len(devices)), mp_context=ctx)
+        try:
             futures = {ex.submit(_device_job, *a): i for i, a in enumerate(jobs_args)}
             for fut in cf.as_completed(futures):
                 done(futures[fut], fut.result())
+        except BaseException:  # Ctrl-C: the devices not started are not fitted
+            ex.shutdown(wait=True, cancel_futures=True)
+            raise
+        ex.shutdown()
     return [results[i] for i in range(len(devices))]
 
 

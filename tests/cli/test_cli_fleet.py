@@ -217,3 +217,25 @@ def test_a_record_spanning_lines_is_warned_of_by_fit_and_fit_devices(fleet, tmp_
     assert res.returncode == 1, res.stderr
     assert "short.csv, rows 3 to 4: read as one record" in res.stderr
     assert "skipped device short: " in res.stderr and "at least 3 data rows" in res.stderr
+
+
+def test_an_interrupt_cancels_the_devices_not_started(fleet, tmp_path):
+    """A user review's case: Ctrl-C printed "interrupted" only after the whole fleet (36 of
+    40 models written after it). An interrupt while the results come in now cancels the
+    devices not yet handed to a worker: only those under way finish."""
+    from cascal.workflow import fit_devices
+
+    _, _, folder, out, _ = fleet
+    devices = []
+    for k in range(16):
+        devices.append(tmp_path / f"d{k:02d}.csv")
+        devices[-1].write_text((folder / "device01.csv").read_text())
+
+    def stop(result) -> None:
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit_devices(out / "testbed.json", devices, tmp_path / "models", options={"n_restarts": 2},
+                    jobs=2, on_result=stop)  # fmt: skip
+    written = list((tmp_path / "models").glob("*.json"))
+    assert 1 <= len(written) <= 6  # the first, those under way and queued; not all 16
