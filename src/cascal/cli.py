@@ -417,8 +417,13 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     )
 
     t0, done = time.perf_counter(), [0]
+    notes: dict[str, list[str]] = {}  # each device's warnings, for the summary too
 
     def report(r) -> None:
+        with _collected(notes.setdefault(r.device, [])):
+            _report_device(r)
+
+    def _report_device(r) -> None:
         done[0] += 1
         rate = done[0] / max(time.perf_counter() - t0, 1e-9)
         eta = (len(files) - done[0]) / rate
@@ -426,7 +431,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         for line in r.warnings:  # (a record joining rows may be why a device is skipped)
             warn("fit-devices", line)
         if r.error:
-            warn("fit-devices", f"{where} skipped device {r.device}: {r.error}")
+            with _collected([]):  # not in the summary's warnings: its column error holds it
+                warn("fit-devices", f"{where} skipped device {r.device}: {r.error}")
         else:
             n_rows = len(r.screening.rows) if r.screening else 0
             suspect = f", {n_rows} suspect row{'s' * (n_rows > 1)}" if n_rows else ""
@@ -446,7 +452,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     results = fit_devices(
         tb_model, files, out / "devices", options=options, jobs=jobs, on_result=report
     )
-    summary = write_text(summary_path, _fleet_csv(results))
+    summary = write_text(summary_path, _fleet_csv(results, notes))
     n_bad = sum(r.error is not None for r in results)
     n_sus = sum(bool(r.screening and r.screening.rows) for r in results)
     if level is not None:
@@ -605,7 +611,8 @@ def model_lines(model) -> list[str]:
     return [*lines, f"Calibrated device range: {span} {model.unit}"]
 
 
-def _fleet_csv(results) -> str:
+def _fleet_csv(results, notes: dict[str, list[str]]) -> str:
+    """The fleet summary: one row per device; ``notes``: its warnings, by device."""
     import csv
     import io
 
@@ -627,6 +634,7 @@ def _fleet_csv(results) -> str:
             "suspect_rows",
             "model",
             "error",
+            "warnings",
         ]
     )
     for r in results:
@@ -643,6 +651,7 @@ def _fleet_csv(results) -> str:
                 " ".join(map(str, r.screening.rows)) if r.screening else "",
                 r.model or "",
                 r.error or "",
+                " | ".join(notes.get(r.device, ())),
             ]
         )
     return buf.getvalue()
@@ -678,10 +687,26 @@ def _show_warning(command: str, default: Callable) -> Callable:
     return show
 
 
+#: Lists that :func:`warn` also appends its messages to (innermost last), see _collected.
+_COLLECTORS: list[list[str]] = []
+
+
+@contextlib.contextmanager
+def _collected(into: list[str]):
+    """Within the block, :func:`warn`'s messages are also appended to ``into``."""
+    _COLLECTORS.append(into)
+    try:
+        yield into
+    finally:
+        _COLLECTORS.pop()
+
+
 def warn(command: str, message: str) -> None:
     if sys.stdout is not None:  # None: the process was started with stdout closed
         sys.stdout.flush()
     print(f"cascal {command}: warning: {message}", file=sys.stderr)
+    if _COLLECTORS:
+        _COLLECTORS[-1].append(message)
 
 
 def _fit_options(p: argparse.ArgumentParser) -> None:

@@ -59,6 +59,7 @@ def test_fleet_summary(fleet):
         assert 0 < float(r["max_u"]) < 1e-3
         assert r["points"] == "100"
     assert "oops" in rows[3]["error"] and rows[3]["model"] == ""
+    assert [r["warnings"] for r in rows] == ["", "", "", ""]  # (the error is not repeated)
 
 
 def test_device_model_equals_a_plain_fit_of_both_stages(fleet):
@@ -148,6 +149,9 @@ def test_a_device_file_with_its_columns_swapped_is_named(fleet, tmp_path):
     assert res.returncode == 0, res.stderr
     assert f"swapped.csv: its columns ({y}, {x}) follow " in res.stderr
     assert "are one file's columns swapped?" in res.stderr
+    with open(tmp_path / "out" / "fleet_summary.csv", newline="") as fh:
+        (row,) = csv.DictReader(fh)  # a user review's case: the warning was on stderr only
+    assert row["status"] == "ok" and "are one file's columns swapped?" in row["warnings"]
 
 
 def test_models_of_devices_gone_from_the_folder_are_named(fleet, tmp_path):
