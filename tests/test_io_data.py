@@ -353,3 +353,32 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
     with pytest.raises(InputError, match=r"mistyped cell \(of testbed or of device\)") as exc:
         read_stage(p)
     assert exc.value.column is None
+
+
+@pytest.mark.parametrize(
+    "text, hint",
+    [
+        ("testbed;reference\n-0,0451;-0,0000436\n0,5;0,5001\n0,9;0,9\n", "a decimal comma?"),
+        ("reading\n0,5\n0,6\n", "decimal commas? Write numbers with a decimal point"),
+        ("testbed,reference\nm,m\n0.1,0.1\n0.5,0.5\n0.9,0.9\n", "a row of units under the"),
+    ],
+    ids=["decimal_comma", "decimal_comma_splits_cells", "units_row"],
+)
+def test_spreadsheet_habits_get_a_hint(tmp_path, text, hint):
+    """A user review's cases: the message named the cell but not the likely cause."""
+    p = _write(tmp_path, text)
+    reader = read_readings if text.startswith("reading\n") else read_stage
+    with pytest.raises(InputError, match=re.escape(hint)):
+        reader(p)
+
+
+def test_unnamed_empty_columns_are_ignored_and_a_value_in_one_is_named(tmp_path):
+    """A user review's case: a spreadsheet's trailing empty columns (``a,b,,``) made the
+    file one of four columns. Columns the header leaves unnamed are ignored while empty."""
+    rows = "".join(f"{k / 10},{k / 10 + 0.001},,\n" for k in range(1, 6))
+    s = read_stage(_write(tmp_path, "testbed,reference,,\n" + rows))
+    assert s.x.tolist() == [0.1, 0.2, 0.3, 0.4, 0.5]
+    assert s.source.columns == ("testbed", "reference")
+    bad = rows.replace("0.3,0.301,,", "0.3,0.301,,7")
+    with pytest.raises(InputError, match=r"row 4: '7' in column 4, which the header row leaves"):
+        read_stage(_write(tmp_path, "testbed,reference,,\n" + bad))

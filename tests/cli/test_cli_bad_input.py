@@ -60,7 +60,7 @@ FIT_CASES = {
     "not_increasing": (
         "a,b\n1,1\n2,2.5\n3,2.4\n4,4\n",
         [],
-        ["row 4", "column 'b'", "not above", "(row 3)", "one-to-one", "a mistyped cell"],
+        ["row 4", "(of b or of a)", "not above", "(row 3)", "one-to-one", "a mistyped cell"],
     ),
     "reversed_direction": (
         "a,b\n1,-1\n2,-2\n3,-3\n4,-4\n",

@@ -368,7 +368,7 @@ def _pick(header: list[str], columns: Sequence[str | None], name: str, hint: str
         if header.index(c) in idx:
             raise InputError(f"column {c!r} is named twice; name two columns", file=name, row=1)
         idx.append(header.index(c))
-    free = [i for i in range(len(header)) if i not in idx]
+    free = [i for i in range(len(header)) if i not in idx and header[i]]  # (not unnamed)
     want = idx.count(None)
     if want and len(free) != want:
         what = "missing" if len(free) < want else "extra"
@@ -475,14 +475,24 @@ def _slow(
             continue
         if len(cells) != width:
             what = "missing cells" if len(cells) < width else "extra cells"
+            hint = ""
+            if delim == "," and len(cells) == 2 * width and all(c.isdigit() for c in cells[1::2]):
+                hint = "; decimal commas? Write numbers with a decimal point"
             raise InputError(
-                f"{what}: expected {width} ({', '.join(header)}), got {len(cells)}",
+                f"{what}: expected {width} ({', '.join(header)}), got {len(cells)}{hint}",
                 file=name,
                 row=row,
             )
         vals = []
         for j, cell in enumerate(cells):
             if j not in idx:
+                if not header[j] and cell.strip():  # (unnamed columns are left empty)
+                    raise InputError(
+                        f"{cell.strip()!r} in column {j + 1}, which the header row leaves "
+                        "unnamed: name it, or delete the cell",
+                        file=name,
+                        row=row,
+                    )
                 vals.append(math.nan)
                 continue
             vals.append(_number(cell, name, row, header[j]))
@@ -533,11 +543,20 @@ def _number(cell: str, name: str, row: int, column: str) -> float:
     if not s:
         raise InputError("expected a number, got an empty cell", file=name, row=row, column=column)
     if not _NUMBER.fullmatch(s):
-        raise InputError(f"expected a number, got {s!r}", file=name, row=row, column=column)
+        hint = ""
+        if _DECIMAL_COMMA.fullmatch(s):
+            hint = ": a decimal comma? Write numbers with a decimal point"
+        elif row == 2:
+            hint = ": a row of units under the header? Delete it"
+        raise InputError(f"expected a number, got {s!r}{hint}", file=name, row=row, column=column)
     v = float(s)
     if not math.isfinite(v):
         raise InputError(f"expected a finite number, got {s!r}", file=name, row=row, column=column)
     return v
+
+
+#: A number written with a decimal comma (``-0,045``), as spreadsheets of many locales do.
+_DECIMAL_COMMA = re.compile(r"[+-]?\d+,\d+(?:[eE][+-]?\d+)?", re.ASCII)
 
 
 def _is_number(s: str) -> bool:
