@@ -884,12 +884,25 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"cascal {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
-    ex = sub.add_parser("example", help="simulate one cascade as in the paper and fit it")
+    ex = sub.add_parser(
+        "example",
+        help="simulate one cascade as in the paper and fit it",
+        description="Simulate one cascade as in the paper (reference -> test bed -> device), "
+        "fit it with the three methods, print each one's cost J and draw the stage fits as "
+        "the paper's Fig. 4: OUT/example_cascade.png. For data files to try the other "
+        "commands on, run cascal demo.",
+    )
     ex.add_argument("--seed", type=seed, default=0, help="random seed (default 0)")
     ex.add_argument("--out", default="out", help="output folder (default out/)")
     ex.set_defaults(func=_cmd_example)
 
-    fit = sub.add_parser("fit", help="fit stage CSV files (reference end first) into a model file")
+    fit = sub.add_parser(
+        "fit",
+        help="fit stage CSV files (reference end first) into a model file",
+        description="Fit stage CSV files, reference end first (reference against test bed, "
+        "then test bed against device, ...), into a versioned JSON model file; warn of "
+        "suspect rows and of fits the data cannot pin down.",
+    )
     fit.add_argument(
         "stages", nargs="+", metavar="STAGE.csv", help="stage files: reading, more accurate reading"
     )
@@ -927,7 +940,11 @@ def _parser() -> argparse.ArgumentParser:
     cor.set_defaults(func=_cmd_correct)
 
     fd = sub.add_parser(
-        "fit-devices", help="calibrate a folder of device files against one test bed"
+        "fit-devices",
+        help="calibrate a folder of device files against one test bed",
+        description="Fit the test bed once (OUT/testbed.json), then every .csv device file "
+        "of a folder against it in parallel (OUT/devices/<name>.json), and summarise the "
+        "fleet in OUT/fleet_summary.csv. A bad device file is skipped (exit status 1).",
     )
     fd.add_argument("testbed", metavar="TESTBED.csv", help="test bed against the reference")
     fd.add_argument(
@@ -962,6 +979,10 @@ def _parser() -> argparse.ArgumentParser:
         "demo",
         help="simulate example files, then fit, correct, report, export, plan, verify and "
         "compare them",
+        description="Simulate the files of a linear and a rotary cascade and run every "
+        "command on them, as a user would: OUT/demo/linear/ and OUT/demo/rotary/ hold the "
+        "data files, models, corrected readings, reports, tables and figures, "
+        "OUT/rotary_periodic.png the rotary correction across 0/360 degrees.",
     )
     demo.add_argument("--out", default="out", help="output folder (default out/)")
     demo.add_argument("--seed", type=seed, default=0, help="seed of the simulation (default 0)")

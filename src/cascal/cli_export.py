@@ -60,7 +60,7 @@ def _format(out: Path, given: str | None) -> str:
     from .errors import InputError
     from .io.atomic import is_stdout
 
-    named = {".h": "h", ".csv": "csv"}.get(out.suffix)
+    named = {".h": "h", ".csv": "csv"}.get(out.suffix.lower())  # (TABLE.H from Windows)
     if given is not None:
         if named is not None and named != given:
             raise InputError(f"-o {out}: a .{named} file name, but --format {given}")
@@ -80,8 +80,14 @@ def _identifier(stem: str) -> str:
 
 def add_export_parser(sub) -> None:
     """Register ``cascal export`` on the subparsers ``sub``."""
+    what = "write a model's correction as a compensation table (C header or CSV)"
     p = sub.add_parser(
-        "export", help="write a model's correction as a compensation table (C header or CSV)"
+        "export",
+        help=what,
+        description="Write a model's correction as a compensation table for a controller: "
+        "a C99 header with the table and an interpolating function (-o NAME.h), or CSV "
+        "(-o NAME.csv), on equally spaced readings, its interpolation error within "
+        "--tolerance.",
     )
     p.add_argument("model", metavar="MODEL.json")
     p.add_argument(

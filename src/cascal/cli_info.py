@@ -80,7 +80,11 @@ def _cmd_info(args: argparse.Namespace) -> int:
 def add_info_parser(sub) -> None:
     """Register ``cascal info`` on the subparsers ``sub``."""
     p = sub.add_parser(
-        "info", help="summarise a model file and check its input files against their checksums"
+        "info",
+        help="summarise a model file and check its input files against their checksums",
+        description="Summarise a model file (stages, hyperparameters, calibrated range, "
+        "warnings about its u) and check the stage files it was fitted from against the "
+        "checksums it stores.",
     )
     p.add_argument("model", metavar="MODEL.json")
     p.set_defaults(func=_cmd_info)

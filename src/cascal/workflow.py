@@ -547,7 +547,7 @@ def compensation(
         if not gp:
             raise InputError(
                 "a lookup-table (lut) model carries no uncertainty to set the table's "
-                f"tolerance by: give one, in {model.unit}"
+                f"tolerance by: give one, in {model.unit} (--tolerance)"
             )
         u_min = float(np.min(device.predict(np.linspace(lo, hi, 2001), return_std=True)[1]))
         tolerance = rtol * u_min
@@ -653,8 +653,8 @@ def plan_measurements(
         return MeasurementPlan(plan, intervals, candidates.size, what, None)
     if where is not None:
         raise InputError(
-            f"where: only for a one-stage model; this one has {len(model.data)} stages, and "
-            "stage 1's readings say where the test bed is used"
+            f"where (--where): only for a one-stage model; this one has {len(model.data)} "
+            "stages, and stage 1's readings say where the test bed is used"
         )
     lower, name = model.fitted.models[1], model.data[1].name
     upper = model.data[1].y

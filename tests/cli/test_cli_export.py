@@ -51,3 +51,5 @@ def test_standard_output_takes_the_format_from_the_option(linear_model, tmp_path
     res = run_cascal("export", linear_model, "-o", tmp_path / "t.csv", "--format", "h")
     assert res.returncode == 2 and "a .csv file name, but --format h" in res.stderr
     assert "Traceback" not in res.stderr
+    res = run_cascal("export", linear_model, "-o", tmp_path / "T.H")  # any case, as .csv
+    assert res.returncode == 0 and "#define T_N " in (tmp_path / "T.H").read_text()
