@@ -164,3 +164,22 @@ def test_files_before_044_with_a_product_kernel_keep_no_bounds():
         assert _same_bounds(since, kernel) and _same_bounds("1.0.0", kernel)
         assert not _same_bounds("0.4.1", kernel) and not _same_bounds("0.4.4rc1", kernel)
     assert not _same_bounds("0.4.3", se + se * per) and _same_bounds("0.4.3", se + per)
+
+
+def test_a_stage_outside_the_range_above_names_units_and_turns(tmp_path):
+    """A user review's cases: a device file whose test-bed column is in mm where the
+    reference file's is in m, and rotary readings that wrap at 360 degrees fitted without
+    the periodic kernel, were both told to measure the stage above over a wider range."""
+    from cascal.errors import InputError
+
+    x = np.linspace(0.05, 0.95, 12)
+    ref = _stage(tmp_path / "ref.csv", x, x + 1e-4 * np.sin(3 * x))
+    mm = _stage(tmp_path / "mm.csv", x * 1000, x * 1000 + 0.1, names=("device", "testbed"))
+    with pytest.raises(InputError, match="far off: are the two files' readings of this sensor"):
+        fit_model([ref, mm], n_restarts=1)
+    deg = np.linspace(25.0, 335.0, 12)  # the reference cannot reach 0 degrees
+    table = _stage(tmp_path / "table.csv", deg, deg + 0.01)
+    turn = np.linspace(1.0, 359.0, 30)  # the device turns all the way round
+    enc = _stage(tmp_path / "enc.csv", turn, turn + 0.02, names=("encoder", "testbed"))
+    with pytest.raises(InputError, match=r"over this range too; or, for a rotary axis whose"):
+        fit_model([table, enc], n_restarts=1)

@@ -347,10 +347,19 @@ def _check_inside(stage: StageData, upper_x: np.ndarray | None) -> None:
     out = np.flatnonzero((stage.y < lo) | (stage.y > hi))
     if out.size:
         i = out[np.argmin(stage.rows[out])]
+        y, span = float(stage.y[i]), hi - lo
+        advice = "the reference never confirmed it: measure the stage above over this range too"
+        if span > 0 and min(abs(y - lo), abs(y - hi)) > 10 * span:
+            advice = "far off: are the two files' readings of this sensor in different units?"
+        elif 90 <= span and 0 <= min(lo, float(stage.y.min())) and max(hi, stage.y.max()) <= 360:
+            advice += (
+                "; or, for a rotary axis whose readings wrap at the full turn, fit with the "
+                "periodic kernel (--kernel periodic --period 360)"
+            )
         raise InputError(
-            f"{stage.source.columns[1]} reading {float(stage.y[i])!r} lies outside the range "
+            f"{stage.source.columns[1]} reading {y!r} lies outside the range "
             f"[{lo!r}, {hi!r}] calibrated by the stage above ({out.size} point(s) outside); "
-            "the reference never confirmed it: measure the stage above over this range too",
+            f"{advice}",
             file=stage.source.file,
             row=int(stage.rows[i]),
             column=stage.source.columns[1],
