@@ -658,7 +658,7 @@ def plan_measurements(
         plan = plan_reference(
             testbed, candidates, k, where=grid, noise_variance=s2, progress=progress
         )
-        what = f"stage 0's uncertainty over test-bed readings [{lo:.9g}, {hi:.9g}] {unit}"
+        what = f"stage 0's uncertainty over test-bed readings {range_text(lo, hi)} {unit}"
         return MeasurementPlan(plan, intervals, candidates.size, what, None)
     if where is not None:
         raise InputError(
@@ -674,7 +674,7 @@ def plan_measurements(
         plan = plan_reference(
             testbed, candidates, k, lower=target, noise_variance=s2, progress=progress
         )
-        span1 = f"[{grid[0]:.9g}, {grid[-1]:.9g}] {unit}"
+        span1 = f"{range_text(float(grid[0]), float(grid[-1]))} {unit}"
         what = f"stage 1 ({name})'s uncertainty over its calibrated range {span1}"
         return MeasurementPlan(plan, intervals, candidates.size, what, name)
     plan = plan_reference(testbed, candidates, k, where=upper, noise_variance=s2, progress=progress)
