@@ -382,3 +382,7 @@ def test_unnamed_empty_columns_are_ignored_and_a_value_in_one_is_named(tmp_path)
     bad = rows.replace("0.3,0.301,,", "0.3,0.301,,7")
     with pytest.raises(InputError, match=r"row 4: '7' in column 4, which the header row leaves"):
         read_stage(_write(tmp_path, "testbed,reference,,\n" + bad))
+    named = read_stage(
+        _write(tmp_path, "testbed,reference,,\n" + bad), x_column="testbed", y_column="reference"
+    )
+    assert named.x.tolist() == s.x.tolist()  # both by name: the others are not read

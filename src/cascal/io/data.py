@@ -167,7 +167,8 @@ def read_table(
             keep = ~np.isin(rows, list(skip))
             values, rows = values[keep], rows[keep]
     if values is None:
-        values, rows = _slow(text, delim, header, idx, name, skip)
+        unnamed = any(c is None for c in columns)  # columns by place: unnamed ones empty
+        values, rows = _slow(text, delim, header, idx, name, skip, unnamed)
     if rows.size < min_rows:
         left = f" ({len(skip)} excluded)" if skip else ""
         raise InputError(
@@ -438,7 +439,11 @@ def _slow(
     idx: list[int],
     name: str,
     skip: frozenset[int] = frozenset(),
+    unnamed: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
+    """Parse every record (``idx``: the columns to read as numbers); with ``unnamed``, a
+    value in a column the header leaves unnamed is an error (columns taken by place skip
+    such columns as empty)."""
     reader = csv.reader(io.StringIO(text), delimiter=delim)
     next(reader)
     out: list[list[float]] = []
@@ -486,7 +491,7 @@ def _slow(
         vals = []
         for j, cell in enumerate(cells):
             if j not in idx:
-                if not header[j] and cell.strip():  # (unnamed columns are left empty)
+                if unnamed and not header[j] and cell.strip():
                     raise InputError(
                         f"{cell.strip()!r} in column {j + 1}, which the header row leaves "
                         "unnamed: name it, or delete the cell",
