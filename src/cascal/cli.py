@@ -419,9 +419,12 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     t0, done = time.perf_counter(), [0]
     notes: dict[str, list[str]] = {}  # each device's warnings, for the summary too
 
+    finished = []  # as reported: an interrupted fleet's summary lists these
+
     def report(r) -> None:
         with _collected(notes.setdefault(r.device, [])):
             _report_device(r)
+        finished.append(r)
 
     def _report_device(r) -> None:
         done[0] += 1
@@ -449,9 +452,14 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
                 _report_chain("fit-devices", [tb.sources[0], r.source])
 
     jobs = args.jobs or os.cpu_count() or 1
-    results = fit_devices(
-        tb_model, files, out / "devices", options=options, jobs=jobs, on_result=report
-    )
+    try:
+        results = fit_devices(
+            tb_model, files, out / "devices", options=options, jobs=jobs, on_result=report
+        )
+    except KeyboardInterrupt:  # the summary of this run's devices so far, not the last run's
+        path = write_text(summary_path, _fleet_csv(finished, notes))
+        warn("fit-devices", f"interrupted after {len(finished)} of {len(files)} devices: {path}")
+        raise
     summary = write_text(summary_path, _fleet_csv(results, notes))
     n_bad = sum(r.error is not None for r in results)
     n_sus = sum(bool(r.screening and r.screening.rows) for r in results)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing
 import os
+import signal
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -781,22 +782,43 @@ def fit_devices(
             done(i, _device_job(*a))
     else:
         ctx = multiprocessing.get_context("spawn")
-        ex = cf.ProcessPoolExecutor(max_workers=min(jobs, len(devices)), mp_context=ctx)
+        stop = ctx.Event()  # set on an interrupt: a worker starts no further device
+        ex = cf.ProcessPoolExecutor(
+            max_workers=min(jobs, len(devices)),
+            mp_context=ctx,
+            initializer=_init_worker,
+            initargs=(stop,),
+        )
         try:
             futures = {ex.submit(_device_job, *a): i for i, a in enumerate(jobs_args)}
             for fut in cf.as_completed(futures):
                 done(futures[fut], fut.result())
-        except BaseException:  # Ctrl-C: the devices not started are not fitted
+        except BaseException:  # Ctrl-C: the devices under way finish, no other starts
+            stop.set()
             ex.shutdown(wait=True, cancel_futures=True)
             raise
         ex.shutdown()
     return [results[i] for i in range(len(devices))]
 
 
+#: In a worker process of :func:`fit_devices`: the event set when the fleet is interrupted.
+_STOP = None
+
+
+def _init_worker(stop) -> None:
+    """Worker start: Ctrl-C is the parent's to handle (a device under way finishes, and
+    its model is whole); ``stop`` tells the worker to start no further device."""
+    global _STOP
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _STOP = stop
+
+
 def _device_job(testbed: str, device: str, out: str, options: dict[str, object]) -> DeviceResult:
     """Fit one device (runs in a worker process). Any failure becomes a skipped result (a
     fleet does not stop for one device), and a model of an earlier run at ``out`` goes."""
     name = Path(device).stem
+    if _STOP is not None and _STOP.is_set():
+        return DeviceResult(name, device, error="not fitted: the fleet was interrupted")
     with warnings.catch_warnings(record=True) as caught:  # to the summary, not a worker's stderr
         warnings.simplefilter("always", DataWarning)
         warnings.simplefilter("always", JitterWarning)
