@@ -386,3 +386,24 @@ def test_unnamed_empty_columns_are_ignored_and_a_value_in_one_is_named(tmp_path)
         _write(tmp_path, "testbed,reference,,\n" + bad), x_column="testbed", y_column="reference"
     )
     assert named.x.tolist() == s.x.tolist()  # both by name: the others are not read
+
+
+def test_unnamed_columns_in_every_place(tmp_path):
+    """A review's cases: a header ``testbed,`` over two columns of numbers is read by place
+    as before; a pandas index column (``,testbed,reference``) is named with the hint to
+    pick columns by name; a value in an unnamed column is found in a large file too (the
+    fast parser would have read it); trailing unnamed cells may be left out; a lone
+    quoted empty reading under ``reading,`` is named."""
+    rows = "".join(f"{k / 100},{k / 100 + 0.0001}\n" for k in range(1, 20))
+    assert read_stage(_write(tmp_path, "testbed,\n" + rows)).x.size == 19
+    index = "".join(f"{i},{k / 100},{k / 100 + 0.0001}\n" for i, k in enumerate(range(1, 20)))
+    with pytest.raises(InputError, match=r"'0' in column 1, .*choose two by name with --x-col"):
+        read_stage(_write(tmp_path, ",testbed,reference\n" + index))
+    big = "".join(f"{k / 10000},,{k / 10000 + 0.00001}\n" for k in range(1, 6001))
+    big = big.replace("0.3,,0.30001", "0.3,7,0.30001")
+    assert big.count("\n") > data_mod._FAST_LINES
+    with pytest.raises(InputError, match=r"row 3001: '7' in column 2"):
+        read_stage(_write(tmp_path, "testbed,,reference\n" + big))
+    assert read_stage(_write(tmp_path, "testbed,reference,,\n" + rows)).x.size == 19
+    with pytest.raises(InputError, match="row 3, column 'reading': expected a number, got an"):
+        read_readings(_write(tmp_path, 'reading,\n0.5,\n""\n0.7,\n'))

@@ -156,10 +156,10 @@ def read_table(
     first = text.split("\n", 1)[0]
     delim = _delimiter(text)
     header = _header(first, delim, name)
-    idx = _pick(header, columns, name, hint)
+    idx, unnamed = _pick(header, columns, name, hint)
     skip = frozenset(int(r) for r in exclude)
     values = rows = None
-    if raw.count(b"\n") > _FAST_LINES:
+    if raw.count(b"\n") > _FAST_LINES and not unnamed:
         values = _fast(path, raw, delim, len(header))
         if values is not None:
             rows = np.arange(2, values.shape[0] + 2)
@@ -167,8 +167,7 @@ def read_table(
             keep = ~np.isin(rows, list(skip))
             values, rows = values[keep], rows[keep]
     if values is None:
-        unnamed = any(c is None for c in columns)  # columns by place: unnamed ones empty
-        values, rows = _slow(text, delim, header, idx, name, skip, unnamed)
+        values, rows = _slow(text, delim, header, idx, name, skip, unnamed, hint)
     if rows.size < min_rows:
         left = f" ({len(skip)} excluded)" if skip else ""
         raise InputError(
@@ -354,8 +353,12 @@ def _header(first: str, delim: str, name: str) -> list[str]:
     return header
 
 
-def _pick(header: list[str], columns: Sequence[str | None], name: str, hint: str) -> list[int]:
-    """Header indices of the wanted columns; None entries take the remaining ones in order."""
+def _pick(
+    header: list[str], columns: Sequence[str | None], name: str, hint: str
+) -> tuple[list[int], frozenset[int]]:
+    """Header indices of the wanted columns (None entries take the remaining ones in
+    order), and the columns left unnamed that those passed over (a spreadsheet's trailing
+    ``,,``): they must be empty."""
     have = ", ".join(repr(h) for h in header)
     idx: list[int | None] = []
     for c in columns:
@@ -369,8 +372,12 @@ def _pick(header: list[str], columns: Sequence[str | None], name: str, hint: str
         if header.index(c) in idx:
             raise InputError(f"column {c!r} is named twice; name two columns", file=name, row=1)
         idx.append(header.index(c))
-    free = [i for i in range(len(header)) if i not in idx and header[i]]  # (not unnamed)
+    free = [i for i in range(len(header)) if i not in idx]
     want = idx.count(None)
+    passed: frozenset[int] = frozenset()
+    if want and len(free) > want:  # more columns than wanted: unnamed ones are passed over
+        passed = frozenset(i for i in free if not header[i])
+        free = [i for i in free if header[i]]
     if want and len(free) != want:
         what = "missing" if len(free) < want else "extra"
         n = len(columns)
@@ -381,7 +388,7 @@ def _pick(header: list[str], columns: Sequence[str | None], name: str, hint: str
             row=1,
         )
     it = iter(free)
-    return [next(it) if i is None else i for i in idx]
+    return [next(it) if i is None else i for i in idx], passed
 
 
 def _fast(path: str | os.PathLike, raw: bytes, delim: str, width: int) -> np.ndarray | None:
@@ -439,11 +446,12 @@ def _slow(
     idx: list[int],
     name: str,
     skip: frozenset[int] = frozenset(),
-    unnamed: bool = False,
+    unnamed: frozenset[int] = frozenset(),
+    hint: str = "",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Parse every record (``idx``: the columns to read as numbers); with ``unnamed``, a
-    value in a column the header leaves unnamed is an error (columns taken by place skip
-    such columns as empty)."""
+    """Parse every record (``idx``: the columns to read as numbers); a value in one of the
+    ``unnamed`` columns, which the columns taken by place passed over, is an error, and a
+    record may leave those cells out where they end it."""
     reader = csv.reader(io.StringIO(text), delimiter=delim)
     next(reader)
     out: list[list[float]] = []
@@ -472,12 +480,14 @@ def _slow(
             joined.append((start, row))
         row = start  # a record of several lines is named by its first
         if not cells or all(not c.strip() for c in cells):
-            if width > 1 or '"' not in _line(text, row, lines):
+            if width - len(unnamed) > 1 or '"' not in _line(text, row, lines):
                 continue  # blank line; a spreadsheet writes an empty row as ",,"
             # a lone quoted empty cell ("") is a reading left empty: _number names it
         seen.add(row)
         if row in skip:
             continue
+        if len(cells) < width and unnamed.issuperset(range(len(cells), width)):
+            cells += [""] * (width - len(cells))  # trailing unnamed cells left out
         if len(cells) != width:
             what = "missing cells" if len(cells) < width else "extra cells"
             hint = ""
@@ -491,10 +501,10 @@ def _slow(
         vals = []
         for j, cell in enumerate(cells):
             if j not in idx:
-                if unnamed and not header[j] and cell.strip():
+                if j in unnamed and cell.strip():
                     raise InputError(
                         f"{cell.strip()!r} in column {j + 1}, which the header row leaves "
-                        "unnamed: name it, or delete the cell",
+                        f"unnamed: name it, or delete the cell{hint}",
                         file=name,
                         row=row,
                     )
