@@ -407,3 +407,22 @@ def test_unnamed_columns_in_every_place(tmp_path):
     assert read_stage(_write(tmp_path, "testbed,reference,,\n" + rows)).x.size == 19
     with pytest.raises(InputError, match="row 3, column 'reading': expected a number, got an"):
         read_readings(_write(tmp_path, 'reading,\n0.5,\n""\n0.7,\n'))
+
+
+def test_the_unit_check_ignores_one_mistyped_cell_and_sees_rotary_columns(tmp_path):
+    """A review's cases: one reading typed 10.0001 for 1.0001 made the span ten times
+    larger and the unit warning fired; degrees against radians in a rotary stage went
+    unwarned, the check running after the unwrapping by whole turns."""
+    x = np.linspace(0.0, 1.0, 40)
+    y = x + 1e-4
+    y[-1] += 9.0  # 10.0001: a mistyped cell, for the screening to name
+    typo = _write(
+        tmp_path, "testbed,reference\n" + "".join(f"{a},{b}\n" for a, b in zip(x, y, strict=True))
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_stage(typo)
+    deg = np.linspace(5.0, 355.0, 30)
+    rad = _write(tmp_path, "encoder,table\n" + "".join(f"{d},{np.radians(d)}\n" for d in deg))
+    with pytest.warns(DataWarning, match="different units"):
+        read_stage(rad, period=360.0)

@@ -216,6 +216,7 @@ def read_stage(
     table = read_table(path, (x_column, y_column), hint=hint, min_rows=MIN_POINTS, exclude=exclude)
     name = table.source.file
     x, y = table.columns
+    _check_units(x, y, table.source.columns, name)  # (before a rotary stage's unwrapping)
     if period is not None:
         span = float(x.max() - x.min())
         if span >= period:
@@ -280,7 +281,6 @@ def read_stage(
             file=name,
             row=int(table.rows[culprit]),
         )
-    _check_units(rep.x, rep.y, table.source.columns, name)
     noise = rep.noise if np.any(rep.counts > 1) else None
     return StageData(rep.x, rep.y, noise, rep.counts, rows, table.source, x, y, table.rows)
 
@@ -291,10 +291,14 @@ UNIT_RATIO = 2.0
 
 
 def _check_units(x: np.ndarray, y: np.ndarray, columns: tuple[str, ...], name: str) -> None:
-    """Warn (:class:`DataWarning`) where the more accurate readings ``y`` span over
-    :data:`UNIT_RATIO` times, or under its inverse, the span of ``x``: the columns in two
-    units (mm and m), or not the same position's readings."""
-    sx, sy = float(x[-1] - x[0]), float(y[-1] - y[0])  # both increasing
+    """Warn (:class:`DataWarning`) where the more accurate readings ``y`` (n,) span over
+    :data:`UNIT_RATIO` times, or under its inverse, the span of the readings ``x`` (n,):
+    the columns in two units (mm and m, degrees and radians). The spans are those of the
+    middle 80 % of each column (of all, below 5 rows), so that one mistyped cell does not
+    set them."""
+    sx, sy = (float(np.subtract(*np.percentile(v, [90, 10]))) for v in (x, y))
+    if x.size < 5:
+        sx, sy = float(np.ptp(x)), float(np.ptp(y))
     if not (sx > 0 and sy > 0) or 1 / UNIT_RATIO <= sy / sx <= UNIT_RATIO:
         return
     xn, yn = columns
