@@ -325,8 +325,8 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     if model.periodic:  # every turn is calibrated: only a reading too large is flagged
         where = "so far out that a float64 holds them less finely than their u"
     unit_hint = ""
-    if n_out == out.size > 1 and not model.periodic:  # every reading: the unit, or the file?
-        unit_hint = f"; all of them: readings in another unit than the model's ({model.unit})?"
+    if n_out == out.size > 1 and not model.periodic and _far_off(c.reading, lo, hi):
+        unit_hint = f"; all far off: readings in another unit than the model's ({model.unit})?"
     if n_out and args.out_of_range == "error":
         first = int(table.rows[np.argmax(out)])
         raise InputError(f"{n_out} reading(s) {where}{unit_hint}", file=args.readings, row=first)
@@ -359,6 +359,15 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     what = "reading" if out.size == 1 else "readings"
     print(f"Corrected {out.size} {what} -> {path} ({decimals} decimals)")
     return 0
+
+
+def _far_off(readings, lo: float, hi: float) -> bool:
+    """Whether every reading lies more than the range's span beyond the range ``[lo, hi]``
+    (as readings in mm against a model in m do)."""
+    import numpy as np
+
+    r = np.asarray(readings, dtype=float)
+    return bool(np.all(np.maximum(lo - r, r - hi) > (hi - lo)))
 
 
 def _cmd_fit_devices(args: argparse.Namespace) -> int:

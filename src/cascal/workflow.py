@@ -131,8 +131,9 @@ def fit_model(
         for s in stages:
             _check_size(s)
     if not periodic:
+        turn = TURNS.get(unit.strip().lower()) if kernel != "periodic" else None
         for k, s in enumerate(stages):
-            _check_inside(s, all_stages[len(head) + k - 1].x if len(head) + k else None)
+            _check_inside(s, all_stages[len(head) + k - 1].x if len(head) + k else None, turn)
     cascade = Cascade(
         all_stages,
         method,
@@ -341,7 +342,26 @@ def fit_findings(model: CalibrationModel, *, first: int = 0) -> list[BoundHit | 
     return out
 
 
-def _check_inside(stage: StageData, upper_x: np.ndarray | None) -> None:
+#: A full turn in the angle units a rotary stage may be read in (lower case).
+TURNS = {
+    "deg": 360.0,
+    "degree": 360.0,
+    "degrees": 360.0,
+    "\N{DEGREE SIGN}": 360.0,
+    "rad": 2 * np.pi,
+    "radian": 2 * np.pi,
+    "radians": 2 * np.pi,
+    "arcmin": 21600.0,
+    "arcsec": 1296000.0,
+    "grad": 400.0,
+    "gon": 400.0,
+}
+
+
+def _check_inside(stage: StageData, upper_x: np.ndarray | None, turn: float | None) -> None:
+    """Refuse a stage whose upper readings leave the range of the stage above (its
+    ``upper_x``); ``turn``: a full turn in the readings' angle unit, when the kernel is
+    not periodic (the message then names the periodic kernel)."""
     if upper_x is None:
         return
     lo, hi = float(upper_x.min()), float(upper_x.max())
@@ -349,13 +369,17 @@ def _check_inside(stage: StageData, upper_x: np.ndarray | None) -> None:
     if out.size:
         i = out[np.argmin(stage.rows[out])]
         y, span = float(stage.y[i]), hi - lo
+        far = float(np.max(np.maximum(lo - stage.y[out], stage.y[out] - hi)))
         advice = "the reference never confirmed it: measure the stage above over this range too"
-        if span > 0 and min(abs(y - lo), abs(y - hi)) > 10 * span:
-            advice = "far off: are the two files' readings of this sensor in different units?"
-        elif 90 <= span and 0 <= min(lo, float(stage.y.min())) and max(hi, stage.y.max()) <= 360:
+        if span > 0 and (far > 10 * span or 2 * out.size > stage.y.size):
+            advice = (
+                f"{out.size} of {stage.y.size} points lie outside, up to {far:.4g} beyond it: "
+                "are the two files' readings of this sensor in different units?"
+            )
+        elif turn is not None:
             advice += (
                 "; or, for a rotary axis whose readings wrap at the full turn, fit with the "
-                "periodic kernel (--kernel periodic --period 360)"
+                f"periodic kernel (--kernel periodic --period {turn:.15g})"
             )
         raise InputError(
             f"{stage.source.columns[1]} reading {y!r} lies outside the range "

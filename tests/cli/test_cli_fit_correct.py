@@ -285,7 +285,11 @@ def test_readings_all_outside_the_range_suggest_a_unit(linear_model, tmp_path):
     res = run_cascal("correct", linear_model, mm, "-o", tmp_path / "c.csv")
     assert res.returncode == 0, res.stderr
     assert "3 of 3 readings lie outside" in res.stderr
-    assert "all of them: readings in another unit than the model's (m)?" in res.stderr
+    assert "all far off: readings in another unit than the model's (m)?" in res.stderr
     res = run_cascal("correct", linear_model, mm, "-o", tmp_path / "e.csv", "--out-of-range",
                      "error")  # fmt: skip
     assert res.returncode == 2 and "another unit than the model's (m)?" in res.stderr
+    near = tmp_path / "near.csv"  # just beyond the range (a review's case): no such hint
+    near.write_text("reading\n0.945\n0.96\n")
+    res = run_cascal("correct", linear_model, near, "-o", tmp_path / "n.csv")
+    assert "2 of 2 readings lie outside" in res.stderr and "unit" not in res.stderr
