@@ -358,18 +358,23 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
 @pytest.mark.parametrize(
     "text, hint",
     [
-        ("testbed;reference\n-0,0451;-0,0000436\n0,5;0,5001\n0,9;0,9\n", "a decimal comma?"),
+        ("testbed;reference\n-0,0451;-0,0000436\n0,5;0,5001\n0,9;0,9\n", "a decimal comma"),
         ("reading\n0,5\n0,6\n", "decimal commas? Write numbers with a decimal point"),
         ("testbed,reference\nm,m\n0.1,0.1\n0.5,0.5\n0.9,0.9\n", "a row of units under the"),
+        ("testbed,reference\n\nm,m\n0.1,0.1\n0.5,0.5\n0.9,0.9\n", "row 3: expected numbers"),
+        ("testbed,reference\n0.1,0.1O01\n0.5,0.5\n0.9,0.9\n", "got '0.1O01'\n"),
     ],
-    ids=["decimal_comma", "decimal_comma_splits_cells", "units_row"],
+    ids=["decimal_comma", "decimal_comma_splits_cells", "units_row", "units_row_3", "typo"],
 )
 def test_spreadsheet_habits_get_a_hint(tmp_path, text, hint):
     """A user review's cases: the message named the cell but not the likely cause."""
     p = _write(tmp_path, text)
     reader = read_readings if text.startswith("reading\n") else read_stage
-    with pytest.raises(InputError, match=re.escape(hint)):
+    with pytest.raises(InputError) as exc:
         reader(p)
+    assert hint.rstrip("\n") in str(exc.value)
+    if hint.endswith("\n"):  # a typo in the first row is not called a units row
+        assert str(exc.value).endswith(hint.rstrip("\n"))
 
 
 def test_unnamed_empty_columns_are_ignored_and_a_value_in_one_is_named(tmp_path):

@@ -286,19 +286,17 @@ def read_stage(
 
 
 #: Ratio of the two columns' spans beyond which (either way) a stage file is warned of:
-#: two readings of one position differ by far less (a scale error of 1e-3 is large).
-UNIT_RATIO = 2.0
+#: two readings of one position differ by far less (a scale error of 1e-3 is large), and
+#: units differ by more (inch and mm 25.4, degree and radian 57, mm and m 1000).
+UNIT_RATIO = 10.0
 
 
 def _check_units(x: np.ndarray, y: np.ndarray, columns: tuple[str, ...], name: str) -> None:
     """Warn (:class:`DataWarning`) where the more accurate readings ``y`` (n,) span over
     :data:`UNIT_RATIO` times, or under its inverse, the span of the readings ``x`` (n,):
     the columns in two units (mm and m, degrees and radians). The spans are those of the
-    middle 80 % of each column (of all, below 5 rows), so that one mistyped cell does not
-    set them."""
+    middle 80 % of each column, so that one mistyped cell does not set them."""
     sx, sy = (float(np.subtract(*np.percentile(v, [90, 10]))) for v in (x, y))
-    if x.size < 5:
-        sx, sy = float(np.ptp(x)), float(np.ptp(y))
     if not (sx > 0 and sy > 0) or 1 / UNIT_RATIO <= sy / sx <= UNIT_RATIO:
         return
     xn, yn = columns
@@ -502,6 +500,13 @@ def _slow(
                 file=name,
                 row=row,
             )
+        if not out and all(_is_text(cells[j]) for j in idx):
+            raise InputError(  # no number where one is due: a second header row?
+                f"expected numbers, got {', '.join(repr(cells[j].strip()) for j in idx)}: a "
+                "row of units under the header? Delete it",
+                file=name,
+                row=row,
+            )
         vals = []
         for j, cell in enumerate(cells):
             if j not in idx:
@@ -564,9 +569,7 @@ def _number(cell: str, name: str, row: int, column: str) -> float:
     if not _NUMBER.fullmatch(s):
         hint = ""
         if _DECIMAL_COMMA.fullmatch(s):
-            hint = ": a decimal comma? Write numbers with a decimal point"
-        elif row == 2:
-            hint = ": a row of units under the header? Delete it"
+            hint = ": a decimal comma (or a thousands separator)? Write numbers with a point"
         raise InputError(f"expected a number, got {s!r}{hint}", file=name, row=row, column=column)
     v = float(s)
     if not math.isfinite(v):
@@ -576,6 +579,12 @@ def _number(cell: str, name: str, row: int, column: str) -> float:
 
 #: A number written with a decimal comma (``-0,045``), as spreadsheets of many locales do.
 _DECIMAL_COMMA = re.compile(r"[+-]?\d+,\d+(?:[eE][+-]?\d+)?", re.ASCII)
+
+
+def _is_text(cell: str) -> bool:
+    """A cell that is neither empty nor a number (with a decimal point or comma)."""
+    s = cell.strip()
+    return bool(s) and not _NUMBER.fullmatch(s) and not _DECIMAL_COMMA.fullmatch(s)
 
 
 def _is_number(s: str) -> bool:
