@@ -74,9 +74,9 @@ def finding_line(finding, file: str, unit: str) -> str:
     if finding.parameter.endswith("length_scale") and finding.side == "upper":
         return (
             f"{file}: the fitted {name} sits at the upper end of its range: the fit reads "
-            f"the {finding.points} points as a straight correction plus noise, and so few "
-            "cannot show whether the corrections bend between them; u cannot be trusted: "
-            "measure more points"
+            f"the {finding.points} points as a straight correction plus noise (constant "
+            "over the turn, with a periodic kernel), and so few cannot show whether the "
+            "corrections bend between them; u cannot be trusted: measure more points"
         )
     if finding.parameter.endswith("length_scale"):
         return (
