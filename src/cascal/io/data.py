@@ -492,11 +492,11 @@ def _slow(
             cells += [""] * (width - len(cells))  # trailing unnamed cells left out
         if len(cells) != width:
             what = "missing cells" if len(cells) < width else "extra cells"
-            hint = ""
+            why = ""
             if delim == "," and len(cells) == 2 * width and all(c.isdigit() for c in cells[1::2]):
-                hint = "; decimal commas? Write numbers with a decimal point"
+                why = "; decimal commas? Write numbers with a decimal point"
             raise InputError(
-                f"{what}: expected {width} ({', '.join(header)}), got {len(cells)}{hint}",
+                f"{what}: expected {width} ({', '.join(header)}), got {len(cells)}{why}",
                 file=name,
                 row=row,
             )
