@@ -431,9 +431,9 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     finished = []  # as reported: an interrupted fleet's summary lists these
 
     def report(r) -> None:
+        finished.append(r)  # first: an interrupt while its lines print keeps it summarised
         with _collected(notes.setdefault(r.device, [])):
             _report_device(r)
-        finished.append(r)
 
     def _report_device(r) -> None:
         done[0] += 1

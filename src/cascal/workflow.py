@@ -813,6 +813,7 @@ def fit_devices(
             initializer=_init_worker,
             initargs=(stop,),
         )
+        futures: dict[cf.Future, int] = {}
         try:
             futures = {ex.submit(_device_job, *a): i for i, a in enumerate(jobs_args)}
             for fut in cf.as_completed(futures):
@@ -820,6 +821,10 @@ def fit_devices(
         except BaseException:  # Ctrl-C: the devices under way finish, no other starts
             stop.set()
             ex.shutdown(wait=True, cancel_futures=True)
+            for fut, i in futures.items():  # those that finished meanwhile are reported
+                if i not in results and fut.done() and not fut.cancelled():
+                    if fut.exception() is None:
+                        done(i, fut.result())
             raise
         ex.shutdown()
     return [results[i] for i in range(len(devices))]
