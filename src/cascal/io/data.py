@@ -523,6 +523,7 @@ def _slow(
         out.append(vals)
         rows.append(row)
     _check_excluded(skip, seen, name)
+    joined = [(a, b) for a, b in joined if a not in skip]  # (one left out is dealt with)
     if joined:
         (a, b), more = joined[0], len(joined) - 1
         others = f" (and {more} more record{'s' * (more > 1)} like it)" if more else ""
