@@ -111,10 +111,3 @@ def test_chebyshev_mean_is_exact_where_a_polynomial_cannot_follow(rng):
         gp = _gp(kernel, rng, 360.0 if kernel == "periodic" else None)
         g = np.linspace(float(gp.x.min()), float(gp.x.max()), 2001)
         assert np.array_equal(tab_mod.chebyshev_mean(gp, g), gp.predict(g))
-
-
-def test_clenshaw_sums_chebyshev_series(rng):
-    coef = rng.normal(size=40) / np.arange(1, 41) ** 2
-    s = np.linspace(-1.0, 1.0, 501)
-    want = np.polynomial.chebyshev.chebval(s, coef)
-    np.testing.assert_allclose(tab_mod._clenshaw(coef, s), want, rtol=0, atol=1e-14)

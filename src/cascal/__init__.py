@@ -9,7 +9,15 @@ from importlib.util import find_spec as _find_spec
 from typing import TYPE_CHECKING as _TYPE_CHECKING
 
 from ._version import __version__
-from .errors import CascalError, InputError, JitterWarning, ModelFileError, NumericalError
+from .errors import (
+    CascalError,
+    CascalWarning,
+    DataWarning,
+    InputError,
+    JitterWarning,
+    ModelFileError,
+    NumericalError,
+)
 
 if _TYPE_CHECKING:  # pragma: no cover
     from . import kernels, noise, planning, screening, simulation
@@ -60,7 +68,9 @@ __all__ = [
     "CalibrationModel",
     "Cascade",
     "CascalError",
+    "CascalWarning",
     "Constant",
+    "DataWarning",
     "Dense",
     "Diagonal",
     "FittedCascade",

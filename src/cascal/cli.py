@@ -311,7 +311,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     from .io.csvout import auto_decimals, write_columns
     from .io.data import read_readings
     from .text import range_text
-    from .workflow import correct
+    from .workflow import correct, far_off
 
     check_output(args.output, inputs=(args.model, args.readings))
     model = load_checked(args.model, o=args.output)
@@ -325,7 +325,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     if model.periodic:  # every turn is calibrated: only a reading too large is flagged
         where = "so far out that a float64 holds them less finely than their u"
     unit_hint = ""
-    if n_out == out.size > 1 and not model.periodic and _far_off(c.reading, lo, hi):
+    if n_out == out.size > 1 and not model.periodic and far_off(c.reading, lo, hi):
         unit_hint = f"; all far off: readings in another unit than the model's ({model.unit})?"
     if n_out and args.out_of_range == "error":
         first = int(table.rows[np.argmax(out)])
@@ -359,15 +359,6 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     what = "reading" if out.size == 1 else "readings"
     print(f"Corrected {out.size} {what} -> {path} ({decimals} decimals)")
     return 0
-
-
-def _far_off(readings, lo: float, hi: float) -> bool:
-    """Whether every reading lies more than the range's span beyond the range ``[lo, hi]``
-    (as readings in mm against a model in m do)."""
-    import numpy as np
-
-    r = np.asarray(readings, dtype=float)
-    return bool(np.all(np.maximum(lo - r, r - hi) > (hi - lo)))
 
 
 def _cmd_fit_devices(args: argparse.Namespace) -> int:
@@ -693,10 +684,10 @@ def warn_cautions(command: str, model) -> None:
 def _show_warning(command: str, default: Callable) -> Callable:
     """A ``warnings.showwarning`` that prints cascal's own warnings as :func:`warn` lines
     and leaves the others to ``default``."""
-    from .errors import DataWarning, JitterWarning
+    from .errors import CascalWarning
 
     def show(message, category, *args, **kwargs) -> None:
-        if issubclass(category, (DataWarning, JitterWarning)):
+        if issubclass(category, CascalWarning):
             warn(command, str(message))
         else:
             default(message, category, *args, **kwargs)

@@ -54,9 +54,9 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     if model.periodic:  # every turn is calibrated
         where = f"the range a float64 holds to better than u (any turn of {model.period:g} {unit})"
     if s["points"] == 0:
-        from .cli import _far_off
+        from .workflow import far_off
 
-        far = not model.periodic and _far_off(reading, lo, hi)
+        far = not model.periodic and far_off(reading, lo, hi)
         hint = f": all far off, in another unit than the model's ({unit})?" if far else ""
         raise InputError(f"no check point lies inside {where}{hint}", file=args.check)
     fig = None

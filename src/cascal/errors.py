@@ -4,6 +4,7 @@ from __future__ import annotations
 
 __all__ = [
     "CascalError",
+    "CascalWarning",
     "DataWarning",
     "InputError",
     "JitterWarning",
@@ -62,9 +63,13 @@ class WorkerError(CascalError):
     """The executor lost its workers or its scheduler; work finished before is kept."""
 
 
-class JitterWarning(RuntimeWarning):
+class CascalWarning(Warning):
+    """Root of every warning cascal gives on purpose (the CLI prints them as one line)."""
+
+
+class JitterWarning(CascalWarning, RuntimeWarning):
     """A matrix needed jitter on its diagonal to factorise: the result is the jittered one's."""
 
 
-class DataWarning(UserWarning):
+class DataWarning(CascalWarning, UserWarning):
     """Input data read, but in a way the user should check (names the file and rows)."""

@@ -23,7 +23,7 @@ from scipy.linalg import solve_triangular
 
 from .cascade import Cascade
 from .compensation import MAX_NODES, CompensationTable, compensation_table
-from .errors import CascalError, DataWarning, InputError, JitterWarning, NumericalError
+from .errors import CascalError, CascalWarning, InputError, NumericalError
 from .gp import FittedGP
 from .io.data import Source, StageData, read_stage
 from .io.modelfile import CalibrationModel, load_model, save_model
@@ -358,6 +358,17 @@ TURNS = {
 }
 
 
+def beyond(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """How far each of ``values`` (m,) lies outside ``[lo, hi]``, shape (m,); <= 0 inside."""
+    return np.maximum(lo - values, values - hi)
+
+
+def far_off(readings: np.ndarray, lo: float, hi: float) -> bool:
+    """Whether every reading (m,) lies more than the range's span beyond ``[lo, hi]``, as
+    readings in mm against a model in m do."""
+    return bool(np.all(beyond(np.asarray(readings, dtype=float), lo, hi) > hi - lo))
+
+
 def _check_inside(stage: StageData, upper_x: np.ndarray | None, turn: float | None) -> None:
     """Refuse a stage whose upper readings leave the range of the stage above (its
     ``upper_x``); ``turn``: a full turn in the readings' angle unit, when the kernel is
@@ -369,7 +380,7 @@ def _check_inside(stage: StageData, upper_x: np.ndarray | None, turn: float | No
     if out.size:
         i = out[np.argmin(stage.rows[out])]
         y, span = float(stage.y[i]), hi - lo
-        far = float(np.max(np.maximum(lo - stage.y[out], stage.y[out] - hi)))
+        far = float(np.max(beyond(stage.y[out], lo, hi)))
         advice = "the reference never confirmed it: measure the stage above over this range too"
         if span > 0 and (far > 10 * span or 2 * out.size > stage.y.size):
             advice = (
@@ -724,8 +735,8 @@ class DeviceResult:
         screening: Outlier screening of the device's file, or None when skipped.
         findings: What makes the device stage's u doubtful (:func:`fit_findings`).
         source: The device file's provenance (its columns among it), or None.
-        warnings: cascal's warnings while reading and fitting it (:class:`DataWarning`,
-            :class:`JitterWarning`), as text.
+        warnings: cascal's warnings while reading and fitting it
+            (:class:`~cascal.errors.CascalWarning`), as text.
     """
 
     device: str
@@ -849,10 +860,9 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
     if _STOP is not None and _STOP.is_set():
         return DeviceResult(name, device, error="not fitted: the fleet was interrupted")
     with warnings.catch_warnings(record=True) as caught:  # to the summary, not a worker's stderr
-        warnings.simplefilter("always", DataWarning)
-        warnings.simplefilter("always", JitterWarning)
+        warnings.simplefilter("always", CascalWarning)
         res = _device_fit(testbed, device, out, options, name)
-    ours = [w for w in caught if issubclass(w.category, (DataWarning, JitterWarning))]
+    ours = [w for w in caught if issubclass(w.category, CascalWarning)]
     for w in caught:  # the others as usual
         if w not in ours:
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)
