@@ -10,11 +10,13 @@ of processes for a fleet of devices.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import multiprocessing
 import os
 import signal
+import threading
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -831,18 +833,58 @@ def fit_devices(
                 done(futures[fut], fut.result())
         except BaseException:  # Ctrl-C: the devices under way finish, no other starts
             stop.set()
-            ex.shutdown(wait=True, cancel_futures=True)
-            for fut, i in futures.items():  # those that finished meanwhile are reported
-                if i not in results and fut.done() and not fut.cancelled():
-                    if fut.exception() is None:
-                        done(i, fut.result())
+            with _second_interrupt_stops(ex) as stopped:
+                ex.shutdown(wait=True, cancel_futures=True)
+                for fut, i in futures.items():  # those that finished meanwhile are reported
+                    if i not in results and fut.done() and not fut.cancelled():
+                        if fut.exception() is None:
+                            done(i, fut.result())
+                        elif stopped:  # a worker stopped by a second Ctrl-C
+                            _, device, out, _ = jobs_args[i]
+                            _discard_temporaries(out)
+                            done(i, DeviceResult(Path(device).stem, device, error=INTERRUPTED))
             raise
         ex.shutdown()
     return [results[i] for i in range(len(devices))]
 
 
+#: The error of a device that an interrupt left unfitted.
+INTERRUPTED = "not fitted: the fleet was interrupted"
+
 #: In a worker process of :func:`fit_devices`: the event set when the fleet is interrupted.
 _STOP = None
+
+
+@contextlib.contextmanager
+def _second_interrupt_stops(ex: cf.ProcessPoolExecutor) -> Iterator[list[bool]]:
+    """While the devices under way finish after a Ctrl-C, a second Ctrl-C terminates
+    their workers instead of interrupting the wait for them (an interrupted wait could hang
+    the process at exit). Yields a list that is true once the workers were stopped so.
+    Only in the main thread (where Python's signal handlers run); elsewhere a no-op."""
+    stopped: list[bool] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield stopped
+        return
+
+    def terminate(signum, frame) -> None:
+        stopped.append(True)
+        for proc in list((getattr(ex, "_processes", None) or {}).values()):
+            if proc.is_alive():
+                proc.terminate()
+
+    previous = signal.signal(signal.SIGINT, terminate)
+    try:
+        yield stopped
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _discard_temporaries(out: str) -> None:
+    """Remove the temporary files a terminated worker left beside the model ``out``."""
+    path = Path(out)
+    for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+        with contextlib.suppress(OSError):
+            tmp.unlink()
 
 
 def _init_worker(stop) -> None:
@@ -858,7 +900,7 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
     fleet does not stop for one device), and a model of an earlier run at ``out`` goes."""
     name = Path(device).stem
     if _STOP is not None and _STOP.is_set():
-        return DeviceResult(name, device, error="not fitted: the fleet was interrupted")
+        return DeviceResult(name, device, error=INTERRUPTED)
     with warnings.catch_warnings(record=True) as caught:  # to the summary, not a worker's stderr
         warnings.simplefilter("always", CascalWarning)
         res = _device_fit(testbed, device, out, options, name)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import re
@@ -245,14 +246,15 @@ def test_an_interrupt_cancels_the_devices_not_started(fleet, tmp_path):
     assert 1 <= len(written) <= 3  # the first and those under way; none started after
 
 
-def test_ctrl_c_in_a_fleet_fits_no_further_device_and_summarises_those_done(fleet, tmp_path):
-    """A review's case: Ctrl-C reached the workers too, which went on with the devices
-    queued for them, and the folder kept the last run's summary. Now the workers leave
-    the signal to the command, which writes the summary of the devices reported so far."""
+def _interrupted_fleet(fleet, tmp_path, gaps: tuple[float, ...]):
+    """Run ``fit-devices`` on 16 devices and send SIGINT to its process group once the
+    first device is done, then again after each of ``gaps`` (s). Returns (returncode,
+    stderr, output folder)."""
     import os
     import signal
     import subprocess
     import sys
+    import time
     from pathlib import Path
 
     _, tb, folder, _, _ = fleet
@@ -271,20 +273,51 @@ def test_ctrl_c_in_a_fleet_fits_no_further_device_and_summarises_those_done(flee
         start_new_session=True,  # a group of its own, signalled as a terminal would
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
-    lines = []
     for line in proc.stdout:  # the first device done: interrupt
-        lines.append(line)
         if "[1/16" in line:
             break
     os.killpg(proc.pid, signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
+    for gap in gaps:
+        time.sleep(gap)
+        with contextlib.suppress(ProcessLookupError):  # (it may have ended already)
+            os.killpg(proc.pid, signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        pytest.fail("fit-devices hung after the interrupts")
+    return proc.returncode, err, out
+
+
+def _check_interrupted(out, err) -> None:
+    """The summary lists the models written, each device at most once; no temporaries."""
     assert "Traceback" not in err and "interrupted after " in err
     with open(out / "fleet_summary.csv", newline="") as fh:
-        done = [r["device"] for r in csv.DictReader(fh)]
-    with open(out / "fleet_summary.csv", newline="") as fh:
-        ok = [r["device"] for r in csv.DictReader(fh) if r["status"] == "ok"]
+        rows = list(csv.DictReader(fh))
+    ok = [r["device"] for r in rows if r["status"] == "ok"]
     models = sorted(p.stem for p in (out / "devices").glob("*.json"))
     assert 1 <= len(models) < 16 and models == sorted(ok)  # those under way finished too
-    assert len(done) == len(ok) or "not fitted: the fleet was interrupted" in err
+    assert len({r["device"] for r in rows}) == len(rows)
+    left = [r["error"] for r in rows if r["status"] != "ok"]
+    assert all(e == "not fitted: the fleet was interrupted" for e in left)
     assert not [p for p in out.rglob("*") if p.name.startswith(".")]  # no temporaries
+
+
+def test_ctrl_c_in_a_fleet_fits_no_further_device_and_summarises_those_done(fleet, tmp_path):
+    """A review's case: Ctrl-C reached the workers too, which went on with the devices
+    queued for them, and the folder kept the last run's summary. Now the workers leave
+    the signal to the command, which writes the summary of the devices reported so far."""
+    code, err, out = _interrupted_fleet(fleet, tmp_path, ())
+    assert code == 130, err
+    _check_interrupted(out, err)
+
+
+@pytest.mark.parametrize("gap", [0.02, 0.1])
+def test_a_second_ctrl_c_in_a_fleet_stops_it_at_once(fleet, tmp_path, gap):
+    """A review's case: a second Ctrl-C while the devices under way finished interrupted
+    the wait for them, and the process hung at exit. Now it stops their workers; the
+    summary names the devices left unfitted, and no temporary file stays."""
+    code, err, out = _interrupted_fleet(fleet, tmp_path, (gap,))
+    assert code in (130, -2), err  # -2: the second signal came as the process ended
+    _check_interrupted(out, err)
