@@ -56,6 +56,9 @@ NOISE_FLOOR_GAIN = 0.1
 #: table (over ``2 * SUBSET`` points), see :func:`_subset_starts`; on an equally spaced
 #: grid the subsets use the cached eigenbases of :mod:`cascal.surrogate` (up to 160 points).
 SUBSET = surrogate.MAX_POINTS
+#: A part of a sum whose log variance lies this far below the other part's is (almost)
+#: off: :func:`_mirror_runs` starts runs with it switched on.
+WEAK = 5.0
 #: Subset optima closer than this (log units, every parameter) are one candidate.
 _DISTINCT = 0.05
 #: Runs of a large stage start this far apart at least (log units): in length scale (the
@@ -435,6 +438,8 @@ def _fit_gp(
         optimization = _search(obj, b, n_restarts, seed, tabulate=not bounded)
         if known is None and learn_noise and "noise_variance" not in (bounds or {}):
             optimization = _below_noise_floor(obj, b, optimization)
+        if not bounded:
+            optimization = _mirror_runs(obj, optimization)
         theta = obj.full_theta(optimization.theta)
         p = kern.n_params
         kern = kern.with_theta(theta[:p])
@@ -541,6 +546,54 @@ def _component_starts(obj: Objective, b: np.ndarray, n_restarts: int, seed) -> l
             t0 = np.array([*pair[0], *pair[1], *(t - 3.0 for t in tail)])
             out.append(np.clip(t0, b[:, 0], b[:, 1]))
     return out
+
+
+def _mirror_runs(obj: Objective, found: OptimResult) -> OptimResult:
+    """``found`` (the search's result, in its own bounds), or for a sum of two scaled
+    stationary kernels (SE, Matern; not periodic) the better optimum of Newton runs from
+    ``found``'s optimum changed so:
+
+    * the two parts' parameters exchanged: a review's sums (SE + Matern 3/2, Matern 5/2 +
+      3/2; 20 and 40 readings of a drift and a ripple) ended 1.6 and 2.5 nats below a
+      30-start L-BFGS-B at the mirror image of its optimum, each part in the other's role;
+    * a part :data:`WEAK` log units below the other switched on, at a short (e^-1 of the
+      median spacing) and a long length scale (the range), its variance e^-1 of the
+      other's, and that start mirrored: with a part switched off, the fits of such data
+      ended up to 1.4 nats low (a part at its variance floor barely moves its length scale);
+    * each part at the short length scale with the learned noise's variance, the noise 3
+      log units lower: white noise read as a kernel too short to correlate neighbours (the
+      same review: 160 readings, 0.14 of the 0.77 nats it missed).
+
+    Made after the noise floor's run (:func:`_below_noise_floor`), which thus starts where
+    it did; never lower than ``found``. The review's 150 composite fits took 18 % longer."""
+    kern = obj.kernel
+    parts = (getattr(kern, "left", None), getattr(kern, "right", None))
+    if not (
+        isinstance(kern, Sum)
+        and all(isinstance(k, _Scaled) and not isinstance(k, Periodic) for k in parts)
+        and obj.n > 2
+    ):
+        return found
+    b = found.bounds
+    theta = np.asarray(found.theta, dtype=float)
+    starts = [np.concatenate([theta[2:4], theta[0:2], theta[4:]])]
+    gaps = np.diff(np.sort(obj.x))
+    gaps = gaps[gaps > 0]
+    if not gaps.size:
+        return found
+    short = math.log(float(np.median(gaps))) - 1.0
+    for i, j in ((0, 2), (2, 0)):
+        if theta[i + 1] < theta[j + 1] - WEAK:  # part i (almost) off: switch it on
+            for ls in (short, math.log(float(gaps.sum()))):
+                t0 = theta.copy()
+                t0[i : i + 2] = ls, theta[j + 1] - 1.0
+                starts += [t0, np.concatenate([t0[2:4], t0[0:2], t0[4:]])]
+        if obj.learn_noise:
+            t0 = theta.copy()
+            t0[i : i + 2] = short, theta[-1]
+            t0[-1] -= 3.0
+            starts.append(t0)
+    return _extra_runs(obj, b, found, [np.clip(t, b[:, 0], b[:, 1]) for t in starts])
 
 
 def _short_start(obj: Objective, b: np.ndarray, theta: np.ndarray) -> np.ndarray | None:
