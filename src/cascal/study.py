@@ -21,7 +21,6 @@ from concurrent.futures import (
     CancelledError,
     Executor,
     Future,
-    ProcessPoolExecutor,
     as_completed,
 )
 from dataclasses import dataclass
@@ -34,6 +33,7 @@ from .gp import pin_blas
 from .io.atomic import save_figure, together, write_text
 from .io.studydb import StudyDB
 from .montecarlo import StudyConfig, TrialResult, run_chunk, run_trial, summarize
+from .pool import ignore_interrupts, shutdown, spawn_pool, submit_all
 
 __all__ = ["StudyOutcome", "run_study", "trials_table"]
 
@@ -183,8 +183,10 @@ def _sweep(folder: Path) -> None:
 
 
 def _start_worker(parent: int) -> None:
-    """A local worker: BLAS on one thread, and an end of its own when ``parent`` does (a
-    killed study leaves no workers holding its output pipes open)."""
+    """A local worker: BLAS on one thread, Ctrl-C left to the command, and an end of its
+    own when ``parent`` does (a killed study leaves no workers holding its output pipes
+    open)."""
+    ignore_interrupts()
     pin_blas()
 
     def watch() -> None:
@@ -205,13 +207,15 @@ def _execute(config, chunks, executor, n_workers):
         return
     pool = None
     if executor is None:
-        ctx = multiprocessing.get_context("spawn")
-        executor = pool = ProcessPoolExecutor(
-            n_workers, mp_context=ctx, initializer=_start_worker, initargs=(os.getpid(),)
-        )
+        executor = pool = spawn_pool(n_workers, _start_worker, (os.getpid(),))
     futures: list[Future] = []
+    calls = [(config, c) for c in chunks]
+    failed = True
     try:
-        futures = [executor.submit(run_chunk, config, c) for c in chunks]
+        if pool is not None:
+            futures = submit_all(pool, run_chunk, calls)
+        else:
+            futures = [executor.submit(run_chunk, *call) for call in calls]
         for fut in as_completed(futures):
             try:
                 results = fut.result()
@@ -222,11 +226,12 @@ def _execute(config, chunks, executor, n_workers):
                     raise
                 raise WorkerError(f"the Dask cluster failed ({_named(exc)})") from None
             yield results
+        failed = False
     finally:
         for f in futures:
             f.cancel()
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+        if pool is not None:  # interrupted: the chunks under way run again on resuming
+            shutdown(pool, wait_for_tasks=not failed)
 
 
 def _named(exc: BaseException) -> str:

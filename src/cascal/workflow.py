@@ -13,16 +13,16 @@ import concurrent.futures as cf
 import contextlib
 import multiprocessing
 import os
-import signal
-import threading
+import time
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from scipy.linalg import solve_triangular
 
+from . import pool
 from .cascade import Cascade
 from .compensation import MAX_NODES, CompensationTable, compensation_table
 from .errors import CascalError, CascalWarning, InputError, NumericalError
@@ -818,31 +818,26 @@ def fit_devices(
         for i, a in enumerate(jobs_args):
             done(i, _device_job(*a))
     else:
-        ctx = multiprocessing.get_context("spawn")
-        stop = ctx.Event()  # set on an interrupt: a worker starts no further device
-        ex = cf.ProcessPoolExecutor(
-            max_workers=min(jobs, len(devices)),
-            mp_context=ctx,
-            initializer=_init_worker,
-            initargs=(stop,),
-        )
+        stop = multiprocessing.get_context("spawn").Event()  # set on an interrupt
+        ex = pool.spawn_pool(min(jobs, len(devices)), _init_worker, (stop,))
         futures: dict[cf.Future, int] = {}
+        started = time.time()
         try:
-            futures = {ex.submit(_device_job, *a): i for i, a in enumerate(jobs_args)}
+            submitted = pool.submit_all(ex, _device_job, jobs_args)
+            futures = dict(zip(submitted, range(len(devices)), strict=True))
             for fut in cf.as_completed(futures):
                 done(futures[fut], fut.result())
         except BaseException:  # Ctrl-C: the devices under way finish, no other starts
             stop.set()
-            with _second_interrupt_stops(ex) as stopped:
-                ex.shutdown(wait=True, cancel_futures=True)
-                for fut, i in futures.items():  # those that finished meanwhile are reported
-                    if i not in results and fut.done() and not fut.cancelled():
-                        if fut.exception() is None:
-                            done(i, fut.result())
-                        elif stopped:  # a worker stopped by a second Ctrl-C
-                            _, device, out, _ = jobs_args[i]
-                            _discard_temporaries(out)
-                            done(i, DeviceResult(Path(device).stem, device, error=INTERRUPTED))
+            stopped = pool.shutdown(ex, wait_for_tasks=True)
+            for fut, i in futures.items():  # those that finished meanwhile are reported
+                if i not in results and fut.done() and not fut.cancelled():
+                    if fut.exception() is None:
+                        done(i, fut.result())
+                    elif stopped:  # a worker stopped by a second Ctrl-C
+                        _, device, out, _ = jobs_args[i]
+                        _discard_unreported(out, started)
+                        done(i, DeviceResult(Path(device).stem, device, error=INTERRUPTED))
             raise
         ex.shutdown()
     return [results[i] for i in range(len(devices))]
@@ -855,43 +850,24 @@ INTERRUPTED = "not fitted: the fleet was interrupted"
 _STOP = None
 
 
-@contextlib.contextmanager
-def _second_interrupt_stops(ex: cf.ProcessPoolExecutor) -> Iterator[list[bool]]:
-    """While the devices under way finish after a Ctrl-C, a second Ctrl-C terminates
-    their workers instead of interrupting the wait for them (an interrupted wait could hang
-    the process at exit). Yields a list that is true once the workers were stopped so.
-    Only in the main thread (where Python's signal handlers run); elsewhere a no-op."""
-    stopped: list[bool] = []
-    if threading.current_thread() is not threading.main_thread():
-        yield stopped
-        return
-
-    def terminate(signum, frame) -> None:
-        stopped.append(True)
-        for proc in list((getattr(ex, "_processes", None) or {}).values()):
-            if proc.is_alive():
-                proc.terminate()
-
-    previous = signal.signal(signal.SIGINT, terminate)
-    try:
-        yield stopped
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
-def _discard_temporaries(out: str) -> None:
-    """Remove the temporary files a terminated worker left beside the model ``out``."""
+def _discard_unreported(out: str, since: float) -> None:
+    """Remove what a worker stopped mid-device left at the model path ``out``: temporary
+    files, and a model it wrote (at or after ``since``, a time.time()) but whose result
+    never came back, so that the models on disk are those the summary lists."""
     path = Path(out)
     for tmp in path.parent.glob(f".{path.name}.*.tmp"):
         with contextlib.suppress(OSError):
             tmp.unlink()
+    with contextlib.suppress(OSError):
+        if path.stat().st_mtime >= since - 0.05:  # (file times are a few ms coarse)
+            path.unlink()
 
 
 def _init_worker(stop) -> None:
     """Worker start: Ctrl-C is the parent's to handle (a device under way finishes, and
     its model is whole); ``stop`` tells the worker to start no further device."""
     global _STOP
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    pool.ignore_interrupts()
     _STOP = stop
 
 

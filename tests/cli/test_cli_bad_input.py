@@ -7,6 +7,7 @@ which keeps the interpreter start-ups from adding up.
 
 from __future__ import annotations
 
+import contextlib
 import json
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -355,3 +356,60 @@ def test_a_stage_too_large_for_a_gp_is_named_and_memory_ends_without_traceback(
     err = capsys.readouterr().err
     assert "cascal fit: error: out of memory" in err and "Traceback" not in err
     assert not (tmp_path / "m.json").exists()
+
+
+@pytest.mark.parametrize("gap", [0.02, 0.2])
+def test_ctrl_c_twice_in_a_study_ends_it_and_the_same_command_resumes(tmp_path, gap):
+    """A review's case: a second Ctrl-C while the study waited for its workers hung it
+    (they kept running, and so did the command). Now the workers leave Ctrl-C to the
+    command, which stops them; the stored trials stay, and the command resumes."""
+    import os
+    import signal
+    import sqlite3
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    out = tmp_path / "study"
+    script = Path(sys.executable).with_name("cascal")
+    cmd = [str(script), "study", "--trials", "300", "--workers", "2", "--out", str(out)]
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # a group of its own, signalled as a terminal would
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+
+    def stored() -> int:
+        try:
+            con = sqlite3.connect(f"file:{out / 'study.sqlite'}?mode=ro", uri=True)
+            try:
+                return con.execute("SELECT count(*) FROM trials").fetchone()[0]
+            finally:
+                con.close()
+        except sqlite3.Error:
+            return 0
+
+    deadline = time.monotonic() + 120
+    while stored() == 0 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGINT)
+    time.sleep(gap)
+    with contextlib.suppress(ProcessLookupError):  # (it may have ended already)
+        os.killpg(proc.pid, signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        pytest.fail("the study hung after two interrupts")
+    assert proc.returncode in (130, -2), err  # -2: the second came as the process ended
+    assert "Traceback" not in err and "interrupted" in err
+    before = stored()
+    assert 0 < before < 300
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert f"({300 - before} run now" in res.stdout and stored() == 300

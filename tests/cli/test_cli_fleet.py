@@ -6,6 +6,7 @@ import contextlib
 import csv
 import json
 import re
+import sys
 
 import pytest
 from cli_helpers import run_cascal
@@ -246,10 +247,11 @@ def test_an_interrupt_cancels_the_devices_not_started(fleet, tmp_path):
     assert 1 <= len(written) <= 3  # the first and those under way; none started after
 
 
-def _interrupted_fleet(fleet, tmp_path, gaps: tuple[float, ...]):
-    """Run ``fit-devices`` on 16 devices and send SIGINT to its process group once the
-    first device is done, then again after each of ``gaps`` (s). Returns (returncode,
-    stderr, output folder)."""
+def _interrupted_fleet(fleet, tmp_path, gaps: tuple[float, ...], after: str = "[1/16", wait=None):
+    """Run ``fit-devices`` on 16 devices and send SIGINT to its process group once a line
+    of its output holds ``after`` (by default: the first device is done), then again after
+    each of ``gaps`` (s); ``wait(pid)`` before the first. Returns (returncode, stderr,
+    output folder)."""
     import os
     import signal
     import subprocess
@@ -273,9 +275,11 @@ def _interrupted_fleet(fleet, tmp_path, gaps: tuple[float, ...]):
         start_new_session=True,  # a group of its own, signalled as a terminal would
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
-    for line in proc.stdout:  # the first device done: interrupt
-        if "[1/16" in line:
+    for line in proc.stdout:
+        if after in line:
             break
+    if wait is not None:
+        wait(proc.pid)
     os.killpg(proc.pid, signal.SIGINT)
     for gap in gaps:
         time.sleep(gap)
@@ -321,3 +325,33 @@ def test_a_second_ctrl_c_in_a_fleet_stops_it_at_once(fleet, tmp_path, gap):
     code, err, out = _interrupted_fleet(fleet, tmp_path, (gap,))
     assert code in (130, -2), err  # -2: the second signal came as the process ended
     _check_interrupted(out, err)
+
+
+def _children(pid: int) -> list[str]:
+    """The child processes of ``pid`` (Linux)."""
+    from pathlib import Path
+
+    return (Path(f"/proc/{pid}/task/{pid}/children").read_text()).split()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize("delay", [0.0, 0.1, 0.3])
+def test_ctrl_c_as_the_workers_start_gives_no_traceback(fleet, tmp_path, delay):
+    """A review's case: Ctrl-C while the workers imported NumPy (they had not yet set
+    SIGINT aside) printed their tracebacks. Now they start with SIGINT blocked. The
+    signal comes ``delay`` s after the second child process (the first worker; the
+    first is multiprocessing's resource tracker) appears."""
+    import time
+
+    def wait(pid: int) -> None:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and len(_children(pid)) < 2:
+            time.sleep(0.005)
+        time.sleep(delay)
+
+    code, err, out = _interrupted_fleet(
+        fleet, tmp_path, (), after="Test bed fitted once", wait=wait
+    )
+    assert code == 130, err
+    assert "Traceback" not in err and "interrupted" in err, err
+    assert not [p for p in out.rglob("*") if p.name.startswith(".")]  # no temporaries

@@ -1,0 +1,93 @@
+"""Local worker processes that leave Ctrl-C to the command.
+
+A terminal sends SIGINT to the whole process group: workers that took it too would print
+tracebacks (while they import NumPy at their start, or mid-task), and a second Ctrl-C
+that interrupted the wait for them could hang the process at exit. So workers start with
+SIGINT blocked and then ignore it (:func:`ignore_interrupts` in their initializer); the
+command shuts them down on the first Ctrl-C (:func:`shutdown`), and a second one stops
+them at once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import signal
+import threading
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+
+
+def _main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def spawn_pool(n_workers: int, initializer: Callable[..., None], initargs: tuple = ()):
+    """A pool of ``n_workers`` spawned processes (none shares the parent's state);
+    ``initializer`` should call :func:`ignore_interrupts`."""
+    ctx = multiprocessing.get_context("spawn")
+    return ProcessPoolExecutor(
+        n_workers, mp_context=ctx, initializer=initializer, initargs=initargs
+    )
+
+
+def submit_all(pool: ProcessPoolExecutor, fn: Callable, calls: Iterable[tuple]) -> list[Future]:
+    """``pool.submit(fn, *args)`` for each ``args`` of ``calls``. The workers start as the
+    tasks are submitted: meanwhile SIGINT is blocked in this thread, which they inherit,
+    so a Ctrl-C while they import NumPy stays with the command; and a Ctrl-C that another
+    thread takes (BLAS's) is held until the tasks are submitted, not raised while a
+    worker is being handed its start-up data (which it would then miss)."""
+    if not _main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        return [pool.submit(fn, *args) for args in calls]
+    held: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        return [pool.submit(fn, *args) for args in calls]
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        signal.signal(signal.SIGINT, previous)
+        if held:  # now, as it would have come
+            signal.raise_signal(signal.SIGINT)
+
+
+def ignore_interrupts() -> None:
+    """In a worker's initializer: ignore SIGINT (a Ctrl-C pending since the worker's start
+    is dropped) and unblock it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
+def shutdown(pool: ProcessPoolExecutor, *, wait_for_tasks: bool) -> bool:
+    """Shut ``pool`` down, cancelling the tasks not started. ``wait_for_tasks``: let the
+    tasks under way finish, unless a Ctrl-C comes meanwhile (or is sent to this process
+    while it waits: the command's second); otherwise stop the workers now. Returns True
+    where the workers were stopped so (their tasks unfinished)."""
+    with _second_interrupt_stops(pool) as stopped:
+        if not wait_for_tasks:
+            _terminate(pool, stopped)
+        pool.shutdown(wait=True, cancel_futures=True)
+    return bool(stopped)
+
+
+@contextlib.contextmanager
+def _second_interrupt_stops(pool: ProcessPoolExecutor) -> Iterator[list[bool]]:
+    """Within: a Ctrl-C terminates ``pool``'s workers instead of raising (an interrupted
+    wait for them could hang the process at exit). Yields a list that is not empty once
+    they were stopped. Only in the main thread, where Python's signal handlers run."""
+    stopped: list[bool] = []
+    if not _main_thread():
+        yield stopped
+        return
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: _terminate(pool, stopped))
+    try:
+        yield stopped
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _terminate(pool: ProcessPoolExecutor, stopped: list[bool]) -> None:
+    stopped.append(True)
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        if proc.is_alive():
+            proc.terminate()
