@@ -205,8 +205,10 @@ def test_numbers_beyond_a_float_are_refused_and_any_seed_is_kept(saved, models, 
     with pytest.raises(ModelFileError, match=r"inconsistent .*a number out of range"):
         load_model(saved)
     saved.write_text(text)  # an integer where a float is due: read as one (1e20 here)
-    _rewrite(saved, lambda d: d["stages"][1]["model"].__setitem__("noise_variance", 10**20))
-    assert load_model(saved).fitted.models[1].noise_variance == 1e20
+    _rewrite(
+        saved, lambda d: d["stages"][1]["model"].__setitem__("log_marginal_likelihood", 10**20)
+    )
+    assert load_model(saved).fitted.models[1].log_marginal_likelihood == 1e20
     _rewrite(saved, lambda d: d["stages"][1].__setitem__("counts", [2**63] * 100))
     with pytest.raises(ModelFileError, match=r"inconsistent .*a number out of range \("):
         load_model(saved)  # an integer beyond int64 among the counts
@@ -219,6 +221,25 @@ def test_numbers_beyond_a_float_are_refused_and_any_seed_is_kept(saved, models, 
     big = fit_model(demo_stages(), method="lut", seed=123456789012345678901234)
     path = save_model(tmp_path / "big_seed.json", big)
     assert load_model(path).seed == 123456789012345678901234
+
+
+@pytest.mark.parametrize(
+    "stage, key, factor",
+    [(1, "length_scale", 3.0), (1, "noise_variance", 100.0), (0, "variance", 1.001)],
+)
+def test_an_edited_hyperparameter_with_a_valid_checksum_is_refused(saved, stage, key, factor):
+    """A review's case: stage 1's length scale tripled and its noise set to 1e-6, the
+    checksum recomputed: the file loaded, its corrections moved by 0.25 mm and every u was
+    0. The stored Cholesky factor must factorise the stored hyperparameters' covariance."""
+
+    def edit(d) -> None:
+        model = d["stages"][stage]["model"]
+        where = model if key == "noise_variance" else model["kernel"]
+        where[key] = where[key] * factor
+
+    _rewrite(saved, edit)
+    with pytest.raises(ModelFileError, match=r"cholesky does not factorise the covariance"):
+        load_model(saved)
 
 
 def test_a_bad_period_is_named_as_such(saved):
