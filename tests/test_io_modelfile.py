@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 
 import jsonschema
 import numpy as np
@@ -139,9 +140,17 @@ def test_checksum_is_of_the_canonical_json(models):
     assert mf._canonical(mixed, mf._number_texts(mixed, {})) == want
 
 
-def test_truncated_file(saved):
-    saved.write_text(saved.read_text()[:-40])
-    with pytest.raises(ModelFileError, match="truncated"):
+@pytest.mark.parametrize("cut", ["end", "number"])
+def test_truncated_file(saved, cut):
+    """Cut anywhere, also within a number (a review's case: "...157e" at 5000 bytes read
+    "Expecting ',' delimiter" without the hint, the error one character before the end)."""
+    text = saved.read_text()
+    if cut == "number":
+        at = re.compile(r"\d\.\d+e-").search(text, len(text) // 3).end() - 1
+        text = text[:at]  # just after a number's "e"
+        assert re.search(r"\d\.\d+e$", text)
+    saved.write_text(text if cut == "number" else text[:-40])
+    with pytest.raises(ModelFileError, match=r"\(the file ends early: truncated\?\)"):
         load_model(saved)
 
 

@@ -114,7 +114,7 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
     text = model.read_text()
     doc = json.loads(text)
     variants = {
-        "model_truncated": (text[: len(text) // 2], ["truncated"]),
+        "model_truncated": (text[: len(text) // 2], ["(the file ends early: truncated?)"]),
         "model_edited": (text.replace('"unit": "m"', '"unit": "mm"'), ["checksum", "edited"]),
         "model_newer": (
             text.replace('"schema_version": 1', '"schema_version": 3'),

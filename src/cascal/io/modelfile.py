@@ -234,7 +234,9 @@ def _parse(text: str, name: str) -> tuple[CalibrationModel, str]:
     try:
         doc = json.loads(text, parse_constant=_reject_constant, parse_float=_float, parse_int=_int)
     except json.JSONDecodeError as exc:
-        end = " (the file ends early: truncated?)" if exc.pos >= len(text.rstrip()) else ""
+        body = text.rstrip()  # a model file is one object: cut short, it lacks its "}"
+        short = exc.pos >= len(body) or not body.endswith("}")
+        end = " (the file ends early: truncated?)" if short else ""
         raise ModelFileError(
             f"{name}: not a valid model file: JSON error at line {exc.lineno} column "
             f"{exc.colno}: {exc.msg}{end}"
