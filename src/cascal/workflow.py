@@ -135,7 +135,8 @@ def fit_model(
     if not periodic:
         turn = TURNS.get(unit.strip().lower()) if kernel != "periodic" else None
         for k, s in enumerate(stages):
-            _check_inside(s, all_stages[len(head) + k - 1].x if len(head) + k else None, turn)
+            upper = all_stages[len(head) + k - 1].x if len(head) + k else None
+            _check_inside(s, upper, turn, stages[k - 1] if k else None)
     cascade = Cascade(
         all_stages,
         method,
@@ -371,10 +372,16 @@ def far_off(readings: np.ndarray, lo: float, hi: float) -> bool:
     return bool(np.all(beyond(np.asarray(readings, dtype=float), lo, hi) > hi - lo))
 
 
-def _check_inside(stage: StageData, upper_x: np.ndarray | None, turn: float | None) -> None:
+def _check_inside(
+    stage: StageData,
+    upper_x: np.ndarray | None,
+    turn: float | None,
+    above: StageData | None = None,
+) -> None:
     """Refuse a stage whose upper readings leave the range of the stage above (its
     ``upper_x``); ``turn``: a full turn in the readings' angle unit, when the kernel is
-    not periodic (the message then names the periodic kernel)."""
+    not periodic (the message then names the periodic kernel); ``above``: the stage
+    file above, whose column names can show the files given in reverse order."""
     if upper_x is None:
         return
     lo, hi = float(upper_x.min()), float(upper_x.max())
@@ -389,6 +396,13 @@ def _check_inside(stage: StageData, upper_x: np.ndarray | None, turn: float | No
                 f"{out.size} of {stage.y.size} points lie outside, up to {far:.4g} beyond it: "
                 "are the two files' readings of this sensor in different units?"
             )
+        if above is not None and _reversed(above, stage):
+            advice = (
+                f"the stage files look to be in reverse order ({Path(stage.source.file).name}'s "
+                f"first column, {stage.source.columns[0]}, is the second of "
+                f"{Path(above.source.file).name}): give them from the reference down, the "
+                "file with the reference's readings first"
+            )
         elif turn is not None:
             advice += (
                 "; or, for a rotary axis whose readings wrap at the full turn, fit with the "
@@ -402,6 +416,13 @@ def _check_inside(stage: StageData, upper_x: np.ndarray | None, turn: float | No
             row=int(stage.rows[i]),
             column=stage.source.columns[1],
         )
+
+
+def _reversed(above: StageData, stage: StageData) -> bool:
+    """Whether the column names link ``stage`` (the stage below) to ``above`` the wrong
+    way round: its first column is the second of ``above``, its second not the first."""
+    (xa, ya), (xs, ys) = (tuple(c.lower() for c in d.source.columns) for d in (above, stage))
+    return xs == ya and ys != xa
 
 
 def correct(model: CalibrationModel, readings: object) -> Correction:

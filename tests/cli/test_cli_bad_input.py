@@ -12,6 +12,7 @@ import json
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import numpy as np
 import pytest
 from cli_helpers import run_cascal
 
@@ -413,3 +414,22 @@ def test_ctrl_c_twice_in_a_study_ends_it_and_the_same_command_resumes(tmp_path, 
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     assert f"({300 - before} run now" in res.stdout and stored() == 300
+
+
+def test_stage_files_in_reverse_order_are_named_as_such(tmp_path):
+    """A review's case: `fit tb_dev.csv ref_tb.csv` (the device's file first) advised
+    measuring the stage above over the range; the column names show the files reversed."""
+    x = np.linspace(0.0, 1.0, 21)
+    ref = tmp_path / "ref_tb.csv"
+    ref.write_text(
+        "testbed,reference\n" + "".join(f"{v!r},{v + 1e-4 * v * v!r}\n" for v in x.tolist())
+    )
+    dev = tmp_path / "tb_dev.csv"
+    d = np.linspace(0.1, 0.9, 30)
+    dev.write_text("device,testbed\n" + "".join(f"{v!r},{v + 1e-4 * v!r}\n" for v in d.tolist()))
+    res = run_cascal("fit", dev, ref, "-o", tmp_path / "m.json")
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "the stage files look to be in reverse order (ref_tb.csv's first column, testbed, " \
+        "is the second of tb_dev.csv)" in res.stderr  # fmt: skip
+    assert not (tmp_path / "m.json").exists()
+    assert run_cascal("fit", ref, dev, "-o", tmp_path / "m.json").returncode == 0
