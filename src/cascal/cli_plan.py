@@ -31,6 +31,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     model = load_checked(args.model, o=args.output, plot=args.plot)
     reach = [_interval(r, "--reach") for r in args.reach] if args.reach else None
     where = None if args.where is None else _interval(args.where, "--where")
+    _check_reach(model, reach, warn)
     progress = Progress(unit="measurement") if args.n > _QUIET else None
     try:
         mp = plan_measurements(
@@ -81,6 +82,30 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         ("Figure", args.plot, lambda: save_figure(fig, args.plot, dpi=130)),
     )
     return 0
+
+
+def _check_reach(model, reach: list[tuple[float, float]] | None, warn) -> None:
+    """Warn of a ``--reach`` interval more than the span of the test-bed readings the
+    model holds (stage 0's, and stage 1's targets) away from them: measurements there
+    inform none of its corrections, and its unit may differ (a review's case: 5:6 on a
+    1 m axis planned five measurements with no word of it)."""
+    import numpy as np
+
+    from .text import range_text
+    from .workflow import far_off
+
+    if not reach:
+        return
+    known = np.concatenate([model.data[0].x, *(d.y for d in model.data[1:2])])
+    lo, hi = float(known.min()), float(known.max())
+    for a, b in reach:
+        if far_off(np.array([a, b]), lo, hi):
+            warn(
+                "plan",
+                f"--reach {a:.9g}:{b:.9g} lies more than their span away from the test-bed "
+                f"readings of the model ({range_text(lo, hi)} {model.unit}): measurements "
+                "there inform none of its corrections (readings in another unit?)",
+            )
 
 
 def _interval(text: str, option: str) -> tuple[float, float]:

@@ -53,6 +53,11 @@ def test_reach_limits_the_proposals(linear_model, tmp_path):
     far = run_cascal("plan", linear_model, "-n", "2", "--reach", "5:6")
     assert far.returncode == 0, far.stderr
     assert "lower the RMS u by less than 0.1 %" in far.stderr
+    # a review's case: 5:6 on a 1 m axis (a unit mixed up?) is named as such
+    assert "--reach 5:6 lies more than their span away from the test-bed readings" in far.stderr
+    assert "(readings in another unit?)" in far.stderr
+    near = run_cascal("plan", linear_model, "-n", "2", "--reach", "1.1:1.2")
+    assert near.returncode == 0 and "away from the test-bed readings" not in near.stderr
 
 
 def test_negative_readings_and_covered_stretches(linear_model, tmp_path):
