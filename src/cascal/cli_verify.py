@@ -160,8 +160,16 @@ def _cmd_verify(args: argparse.Namespace) -> int:
             f"(first: row {first}){not_judged}."
         )
         return EXIT_NOT_CONFORMING
+    if v.mpe is not None and s["outside_range"]:  # a go/no-go passes on every point only
+        first = int(table.rows[np.argmax(~m)])
+        print(
+            f"Verification failed: {_points(s['outside_range'])} outside the range, not "
+            f"judged, so not shown to conform to the MPE (first: row {first}); the "
+            f"{_points(n)} inside conform."
+        )
+        return EXIT_NOT_CONFORMING
     if v.mpe is not None:
-        print(f"Verification passed: all {_points(n)} conform{not_judged}.")
+        print(f"Verification passed: all {_points(n)} conform.")
     else:
         print("No --mpe given: reported, not judged.")
     return 0

@@ -52,9 +52,19 @@ def test_mpe_decides_the_exit_status(linear_model, check_file, tmp_path):
     src = np.loadtxt(check_file, delimiter=",", skiprows=1)
     lib = verify_model(load_model(linear_model), src[:, 0], src[:, 1])
     largest = lib.summary()["max_after"]
-    ok = run_cascal("verify", linear_model, check_file, "--mpe", f"{1.01 * largest:.17g}")
+    inside = tmp_path / "inside.csv"  # the check points inside the range
+    write_columns(inside, {"device": src[lib.inside, 0], "ref": src[lib.inside, 1]}, decimals=15)
+    ok = run_cascal("verify", linear_model, inside, "--mpe", f"{1.01 * largest:.17g}")
     assert ok.returncode == 0, ok.stderr
-    assert "Verification passed:" in ok.stdout
+    assert "Verification passed: all 2000 check points conform." in ok.stdout
+    # a review's case: the point outside the range, not judged, passed with the others
+    cut = run_cascal("verify", linear_model, check_file, "--mpe", f"{1.01 * largest:.17g}")
+    assert cut.returncode == 3, cut.stderr
+    row = 2 + int(np.flatnonzero(~lib.inside)[0])
+    assert (
+        "Verification failed: 1 check point outside the range, not judged, so not shown to "
+        f"conform to the MPE (first: row {row}); the 2000 check points inside conform."
+    ) in cut.stdout
     out = tmp_path / "v.csv"
     assert "no guard band" in ok.stderr  # the reference taken as exact
     tight = run_cascal("verify", linear_model, check_file, "--mpe", f"{0.5 * largest:.17g}",
@@ -81,9 +91,10 @@ def test_points_outside_the_range_are_not_judged(linear_model, tmp_path):
     check.write_text("note,ref,device\n1,0.47423,0.5\n2,5.0,0.99\n")
     res = run_cascal("verify", linear_model, check, "--x-column", "device", "--y-column", "ref",
                      "--mpe", "1e-3", "--reference-u", "1e-7")  # fmt: skip
-    assert res.returncode == 0, res.stderr
+    assert res.returncode == 3, res.stderr  # not shown to conform: the go/no-go fails
     assert "at 1 check point of" in res.stdout and "(row 2, reading 0.5)" in res.stdout
-    assert "Verification passed: all 1 check point conform; 1 outside" in res.stdout
+    assert "1 check point outside the range, not judged, so not shown to conform" in res.stdout
+    assert "the 1 check point inside conform" in res.stdout
     assert "row 3); they are not judged" in res.stderr
     big = run_cascal("verify", linear_model, check, "--x-column", "device", "--y-column", "ref",
                      "--reading-u", "1")  # fmt: skip
@@ -122,8 +133,8 @@ def test_lookup_table_model(linear_files, check_file, tmp_path):
     assert run_cascal("fit", *files, "--method", "lut", "-o", model).returncode == 0
     out = tmp_path / "v.csv"
     res = run_cascal("verify", model, check_file, "--mpe", "1", "-o", out)
-    assert res.returncode == 0, res.stderr
-    assert "no uncertainty" in res.stderr and "Verification passed:" in res.stdout
+    assert res.returncode == 3, res.stderr  # (the point outside the range)
+    assert "no uncertainty" in res.stderr and "the 2000 check points inside conform" in res.stdout
     table = np.genfromtxt(out, delimiter=",", names=True)
     assert np.all(np.isnan(table["En"]))
     assert np.all(table["conforms"][:-1] == 1) and np.isnan(table["conforms"][-1])
