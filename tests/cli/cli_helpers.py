@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from cascal.io.csvout import auto_decimals, write_columns
 __all__ = [
     "assert_refused",
     "device_folder",
+    "interrupted",
     "run_bad_cases",
     "run_cascal",
     "spoil",
@@ -28,6 +30,43 @@ def run_cascal(*args: object, timeout: float = 300) -> subprocess.CompletedProce
     return subprocess.run(
         [*cmd, *map(str, args)], capture_output=True, text=True, timeout=timeout, check=False
     )
+
+
+def interrupted(
+    args: list, ready: Callable[[subprocess.Popen], None], gaps: tuple[float, ...] = ()
+) -> tuple[int, str]:
+    """Start ``cascal *args`` in a process group of its own with SIGINT at its default (as
+    a terminal does), wait for ``ready(proc)`` to return, send SIGINT to the group, then
+    again after each of ``gaps`` (s). Returns (returncode, stderr); fails the test where
+    the command has not ended 120 s after the last signal."""
+    import contextlib
+    import os
+    import signal
+    import time
+
+    import pytest
+
+    proc = subprocess.Popen(
+        [str(_SCRIPT), *map(str, args)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    ready(proc)
+    os.killpg(proc.pid, signal.SIGINT)
+    for gap in gaps:
+        time.sleep(gap)
+        with contextlib.suppress(ProcessLookupError):  # (it may have ended already)
+            os.killpg(proc.pid, signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        pytest.fail(f"cascal {args[0]} hung after the interrupts")
+    return proc.returncode, err
 
 
 def run_bad_cases(command: str, cases: dict, tmp: Path) -> dict:

@@ -7,14 +7,13 @@ which keeps the interpreter start-ups from adding up.
 
 from __future__ import annotations
 
-import contextlib
 import json
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_helpers import run_cascal
+from cli_helpers import interrupted, run_cascal
 
 GOOD = "a,b\n1.0,1.1\n2.0,2.05\n3.0,3.2\n4.0,4.1\n"
 
@@ -364,25 +363,11 @@ def test_ctrl_c_twice_in_a_study_ends_it_and_the_same_command_resumes(tmp_path, 
     """A review's case: a second Ctrl-C while the study waited for its workers hung it
     (they kept running, and so did the command). Now the workers leave Ctrl-C to the
     command, which stops them; the stored trials stay, and the command resumes."""
-    import os
-    import signal
     import sqlite3
-    import subprocess
-    import sys
     import time
-    from pathlib import Path
 
     out = tmp_path / "study"
-    script = Path(sys.executable).with_name("cascal")
-    cmd = [str(script), "study", "--trials", "300", "--workers", "2", "--out", str(out)]
-    proc = subprocess.Popen(
-        cmd,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,  # a group of its own, signalled as a terminal would
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    )
+    args = ["study", "--trials", "300", "--workers", "2", "--out", out]
 
     def stored() -> int:
         try:
@@ -394,24 +379,17 @@ def test_ctrl_c_twice_in_a_study_ends_it_and_the_same_command_resumes(tmp_path, 
         except sqlite3.Error:
             return 0
 
-    deadline = time.monotonic() + 120
-    while stored() == 0 and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    os.killpg(proc.pid, signal.SIGINT)
-    time.sleep(gap)
-    with contextlib.suppress(ProcessLookupError):  # (it may have ended already)
-        os.killpg(proc.pid, signal.SIGINT)
-    try:
-        _, err = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.communicate()
-        pytest.fail("the study hung after two interrupts")
-    assert proc.returncode in (130, -2), err  # -2: the second came as the process ended
+    def ready(proc) -> None:
+        deadline = time.monotonic() + 120
+        while stored() == 0 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+    code, err = interrupted(args, ready, (gap,))
+    assert code in (130, -2), err  # -2: the second came as the process ended
     assert "Traceback" not in err and "interrupted" in err
     before = stored()
     assert 0 < before < 300
-    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    res = run_cascal(*args)
     assert res.returncode == 0, res.stderr
     assert f"({300 - before} run now" in res.stdout and stored() == 300
 

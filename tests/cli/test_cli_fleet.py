@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import json
 import re
 import sys
 
 import pytest
-from cli_helpers import run_cascal
+from cli_helpers import interrupted, run_cascal
 
 from cascal.demo import fleet_demo
 from cascal.io.csvout import write_columns
@@ -252,46 +251,23 @@ def _interrupted_fleet(fleet, tmp_path, gaps: tuple[float, ...], after: str = "[
     of its output holds ``after`` (by default: the first device is done), then again after
     each of ``gaps`` (s); ``wait(pid)`` before the first. Returns (returncode, stderr,
     output folder)."""
-    import os
-    import signal
-    import subprocess
-    import sys
-    import time
-    from pathlib import Path
-
     _, tb, folder, _, _ = fleet
     devices = tmp_path / "devices"
     devices.mkdir()
     for k in range(16):
         (devices / f"d{k:02d}.csv").write_text((folder / "device01.csv").read_text())
     out = tmp_path / "out"
-    script = Path(sys.executable).with_name("cascal")
-    cmd = [script, "fit-devices", tb, "--devices", devices, "-o", out, "--jobs", "2"]
-    proc = subprocess.Popen(
-        [str(c) for c in cmd],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,  # a group of its own, signalled as a terminal would
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    )
-    for line in proc.stdout:
-        if after in line:
-            break
-    if wait is not None:
-        wait(proc.pid)
-    os.killpg(proc.pid, signal.SIGINT)
-    for gap in gaps:
-        time.sleep(gap)
-        with contextlib.suppress(ProcessLookupError):  # (it may have ended already)
-            os.killpg(proc.pid, signal.SIGINT)
-    try:
-        _, err = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.communicate()
-        pytest.fail("fit-devices hung after the interrupts")
-    return proc.returncode, err, out
+
+    def ready(proc) -> None:
+        for line in proc.stdout:
+            if after in line:
+                break
+        if wait is not None:
+            wait(proc.pid)
+
+    args = ["fit-devices", tb, "--devices", devices, "-o", out, "--jobs", "2"]
+    code, err = interrupted(args, ready, gaps)
+    return code, err, out
 
 
 def _check_interrupted(out, err) -> None:
