@@ -17,6 +17,9 @@ import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 
+#: Whether this platform has signal masks (POSIX; not Windows).
+_MASKS = hasattr(signal, "pthread_sigmask")
+
 
 def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
@@ -37,7 +40,7 @@ def submit_all(pool: ProcessPoolExecutor, fn: Callable, calls: Iterable[tuple]) 
     so a Ctrl-C while they import NumPy stays with the command; and a Ctrl-C that another
     thread takes (BLAS's) is held until the tasks are submitted, not raised while a
     worker is being handed its start-up data (which it would then miss)."""
-    if not _main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    if not (_main_thread() and _MASKS) or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         return [pool.submit(fn, *args) for args in calls]
     held: list[int] = []
     previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
@@ -55,7 +58,8 @@ def ignore_interrupts() -> None:
     """In a worker's initializer: ignore SIGINT (a Ctrl-C pending since the worker's start
     is dropped) and unblock it."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    if _MASKS:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 def shutdown(pool: ProcessPoolExecutor, *, wait_for_tasks: bool) -> bool:
