@@ -94,7 +94,7 @@ def _check_reach(model, reach: list[tuple[float, float]] | None, warn) -> None:
     from .text import range_text
     from .workflow import far_off
 
-    if not reach:
+    if not reach or model.periodic:  # (a periodic model plans on one turn: any reading)
         return
     known = np.concatenate([model.data[0].x, *(d.y for d in model.data[1:2])])
     lo, hi = float(known.min()), float(known.max())

@@ -43,15 +43,15 @@ def submit_all(pool: ProcessPoolExecutor, fn: Callable, calls: Iterable[tuple]) 
     if not (_main_thread() and _MASKS) or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         return [pool.submit(fn, *args) for args in calls]
     held: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
-    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        return [pool.submit(fn, *args) for args in calls]
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
-        signal.signal(signal.SIGINT, previous)
-        if held:  # now, as it would have come
-            signal.raise_signal(signal.SIGINT)
+    with _handling_interrupts(lambda signum, frame: held.append(signum)):
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            futures = [pool.submit(fn, *args) for args in calls]
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+    if held:  # now, as it would have come
+        signal.raise_signal(signal.SIGINT)
+    return futures
 
 
 def ignore_interrupts() -> None:
@@ -62,30 +62,39 @@ def ignore_interrupts() -> None:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
-def shutdown(pool: ProcessPoolExecutor, *, wait_for_tasks: bool) -> bool:
+def shutdown(pool: ProcessPoolExecutor, *, wait_for_tasks: bool, interrupted: bool) -> bool:
     """Shut ``pool`` down, cancelling the tasks not started. ``wait_for_tasks``: let the
-    tasks under way finish, unless a Ctrl-C comes meanwhile (or is sent to this process
-    while it waits: the command's second); otherwise stop the workers now. Returns True
-    where the workers were stopped so (their tasks unfinished)."""
-    with _second_interrupt_stops(pool) as stopped:
+    tasks under way finish; otherwise stop the workers now. A Ctrl-C during the wait stops
+    the workers instead of interrupting it (an interrupted wait could hang the process at
+    exit); where the caller is not handling one already (``interrupted``), it is raised
+    after, as KeyboardInterrupt. Returns True where the workers were stopped (their tasks
+    unfinished)."""
+    stopped: list[bool] = []
+    signals: list[int] = []
+
+    def on_interrupt(signum, frame) -> None:
+        signals.append(signum)
+        _terminate(pool, stopped)
+
+    with _handling_interrupts(on_interrupt):
         if not wait_for_tasks:
             _terminate(pool, stopped)
         pool.shutdown(wait=True, cancel_futures=True)
+    if signals and not interrupted:
+        raise KeyboardInterrupt
     return bool(stopped)
 
 
 @contextlib.contextmanager
-def _second_interrupt_stops(pool: ProcessPoolExecutor) -> Iterator[list[bool]]:
-    """Within: a Ctrl-C terminates ``pool``'s workers instead of raising (an interrupted
-    wait for them could hang the process at exit). Yields a list that is not empty once
-    they were stopped. Only in the main thread, where Python's signal handlers run."""
-    stopped: list[bool] = []
+def _handling_interrupts(handler: Callable) -> Iterator[None]:
+    """Within: SIGINT calls ``handler`` instead of raising KeyboardInterrupt. Only in the
+    main thread, where Python's signal handlers run."""
     if not _main_thread():
-        yield stopped
+        yield
         return
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: _terminate(pool, stopped))
+    previous = signal.signal(signal.SIGINT, handler)
     try:
-        yield stopped
+        yield
     finally:
         signal.signal(signal.SIGINT, previous)
 

@@ -231,7 +231,7 @@ def _execute(config, chunks, executor, n_workers):
         for f in futures:
             f.cancel()
         if pool is not None:  # interrupted: the chunks under way run again on resuming
-            shutdown(pool, wait_for_tasks=not failed)
+            shutdown(pool, wait_for_tasks=not failed, interrupted=failed)
 
 
 def _named(exc: BaseException) -> str:

@@ -13,7 +13,6 @@ import concurrent.futures as cf
 import contextlib
 import multiprocessing
 import os
-import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -842,25 +841,25 @@ def fit_devices(
         stop = multiprocessing.get_context("spawn").Event()  # set on an interrupt
         ex = pool.spawn_pool(min(jobs, len(devices)), _init_worker, (stop,))
         futures: dict[cf.Future, int] = {}
-        started = time.time()
         try:
             submitted = pool.submit_all(ex, _device_job, jobs_args)
             futures = dict(zip(submitted, range(len(devices)), strict=True))
             for fut in cf.as_completed(futures):
                 done(futures[fut], fut.result())
-        except BaseException:  # Ctrl-C: the devices under way finish, no other starts
+        except BaseException as exc:  # Ctrl-C: the devices under way finish, no other starts
             stop.set()
-            stopped = pool.shutdown(ex, wait_for_tasks=True)
+            interrupted = isinstance(exc, KeyboardInterrupt)
+            stopped = pool.shutdown(ex, wait_for_tasks=True, interrupted=interrupted)
             for fut, i in futures.items():  # those that finished meanwhile are reported
                 if i not in results and fut.done() and not fut.cancelled():
                     if fut.exception() is None:
                         done(i, fut.result())
                     elif stopped:  # a worker stopped by a second Ctrl-C
                         _, device, out, _ = jobs_args[i]
-                        _discard_unreported(out, started)
+                        _discard(out)
                         done(i, DeviceResult(Path(device).stem, device, error=INTERRUPTED))
             raise
-        ex.shutdown()
+        pool.shutdown(ex, wait_for_tasks=True, interrupted=False)
     return [results[i] for i in range(len(devices))]
 
 
@@ -871,17 +870,14 @@ INTERRUPTED = "not fitted: the fleet was interrupted"
 _STOP = None
 
 
-def _discard_unreported(out: str, since: float) -> None:
-    """Remove what a worker stopped mid-device left at the model path ``out``: temporary
-    files, and a model it wrote (at or after ``since``, a time.time()) but whose result
-    never came back, so that the models on disk are those the summary lists."""
+def _discard(out: str) -> None:
+    """Remove the model path ``out`` of a device left unfitted, and any temporary file a
+    worker stopped mid-device left beside it: as for a device that failed, no model (of
+    this run or an earlier one) stays where the summary says "not fitted"."""
     path = Path(out)
-    for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+    for tmp in [path, *path.parent.glob(f".{path.name}.*.tmp")]:
         with contextlib.suppress(OSError):
             tmp.unlink()
-    with contextlib.suppress(OSError):
-        if path.stat().st_mtime >= since - 0.05:  # (file times are a few ms coarse)
-            path.unlink()
 
 
 def _init_worker(stop) -> None:
@@ -897,6 +893,7 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
     fleet does not stop for one device), and a model of an earlier run at ``out`` goes."""
     name = Path(device).stem
     if _STOP is not None and _STOP.is_set():
+        _discard(out)
         return DeviceResult(name, device, error=INTERRUPTED)
     with warnings.catch_warnings(record=True) as caught:  # to the summary, not a worker's stderr
         warnings.simplefilter("always", CascalWarning)

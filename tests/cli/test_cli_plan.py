@@ -101,6 +101,9 @@ def test_periodic_proposals_lie_on_one_turn(tmp_path):
         (340.0, 360.0), (0.0, 10.0), (40.0, 50.0),
     ]  # fmt: skip
     assert _wrapped([(0.0, 400.0), (5.0, 6.0)], 360.0) == [(0.0, 360.0)]
+    path = save_model(tmp_path / "rotary.json", model)  # a reach turns away: no unit warning
+    res = run_cascal("plan", path, "-n", "1", "--reach=720:740")
+    assert res.returncode == 0 and "another unit" not in res.stderr, res.stderr
 
 
 def test_outputs_never_overwrite_inputs(linear_files, linear_model, tmp_path):

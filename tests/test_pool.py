@@ -1,0 +1,87 @@
+"""Worker pools that leave Ctrl-C to the command: a Ctrl-C while the pool shuts down."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import time
+
+import pytest
+
+from cascal import pool
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+
+
+def _sleeping_pool(seconds: float):
+    """Two workers, each busy with ``time.sleep(seconds)``, started."""
+    ex = pool.spawn_pool(2, pool.ignore_interrupts)
+    futures = pool.submit_all(ex, time.sleep, [(seconds,), (seconds,)])
+    deadline = time.monotonic() + 60
+    while not all(f.running() for f in futures) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.5)  # (running means handed to a worker: let it start sleeping)
+    return ex, futures
+
+
+def _interrupt_in(seconds: float) -> threading.Timer:
+    timer = threading.Timer(seconds, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    return timer
+
+
+@pytest.mark.parametrize("interrupted", [False, True])
+def test_a_ctrl_c_while_the_pool_shuts_down_stops_its_workers(interrupted):
+    """A review's cases: a Ctrl-C while the command waited for its workers to end hung the
+    process at exit (the wait interrupted), and once the study's trials were all stored
+    it was taken as a second Ctrl-C and ignored (exit 0). Now it stops the workers, and
+    where the command is not handling a Ctrl-C already, it is raised after."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # (as in a command)
+    ex, futures = _sleeping_pool(60.0)
+    t0 = time.monotonic()
+    _interrupt_in(0.3)
+    if interrupted:
+        assert pool.shutdown(ex, wait_for_tasks=True, interrupted=True)  # workers stopped
+    else:
+        with pytest.raises(KeyboardInterrupt):
+            pool.shutdown(ex, wait_for_tasks=True, interrupted=False)
+    assert time.monotonic() - t0 < 30  # not the tasks' 60 s
+    assert all(f.done() for f in futures)
+    assert not any(p.is_alive() for p in multiprocessing.active_children())
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+def test_a_pool_shut_down_undisturbed_lets_its_tasks_finish():
+    ex, futures = _sleeping_pool(0.5)
+    assert not pool.shutdown(ex, wait_for_tasks=True, interrupted=False)
+    assert [f.result() for f in futures] == [None, None]
+
+
+def test_a_ctrl_c_while_tasks_are_submitted_comes_after_them():
+    """A Ctrl-C while the workers are being spawned is held until every task is
+    submitted (it had cut a worker's start-up data), then raised; the workers, started
+    with SIGINT blocked, ignore it."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    ex = pool.spawn_pool(2, pool.ignore_interrupts)
+    interrupting = _Interrupting(ex)
+    with pytest.raises(KeyboardInterrupt):
+        pool.submit_all(interrupting, time.sleep, [(0.2,), (0.2,)])
+    assert len(interrupting.made) == 2  # both submitted before the interrupt came
+    assert [f.result(timeout=60) for f in interrupting.made] == [None, None]  # workers alive
+    pool.shutdown(ex, wait_for_tasks=True, interrupted=False)
+
+
+class _Interrupting:
+    """A pool whose every ``submit`` first sends this process SIGINT, as a Ctrl-C then
+    would; it records the futures made."""
+
+    def __init__(self, ex) -> None:
+        self.ex, self.made = ex, []
+
+    def submit(self, fn, *args):
+        os.kill(os.getpid(), signal.SIGINT)
+        self.made.append(self.ex.submit(fn, *args))
+        return self.made[-1]
