@@ -1016,20 +1016,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cascal`` console script; returns the exit status."""
     try:  # Ctrl-C while the subcommands' modules load (NumPy, SciPy: a few tenths of a s)
         return _main(argv)
-    except KeyboardInterrupt:
-        _ignore_interrupts()
+    except KeyboardInterrupt:  # a further Ctrl-C as it exits: status 130 all the same
+        from .pool import ignore_interrupts
+
+        ignore_interrupts()
         print("cascal: interrupted", file=sys.stderr)
         return 130
-
-
-def _ignore_interrupts() -> None:
-    """The command ends interrupted: a further Ctrl-C while it exits (a user pressing it
-    again) changes nothing, so that it exits with status 130, not by the signal."""
-    import signal
-    import threading
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _main(argv: Sequence[str] | None) -> int:
@@ -1069,7 +1061,9 @@ def _main(argv: Sequence[str] | None) -> int:
         )
         return EXIT_FAILURE
     except KeyboardInterrupt:
-        _ignore_interrupts()
+        from .pool import ignore_interrupts
+
+        ignore_interrupts()
         print(f"cascal {args.command}: interrupted", file=sys.stderr)
         return 130
 

@@ -66,13 +66,13 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         fig = verification_figure(model, v)
     m = v.inside
     outside = ""
+    first_out = int(table.rows[np.argmax(~m)])  # (the first row when none is outside)
     if s["outside_range"]:
-        first = int(table.rows[np.argmax(~m)])
         outside = f"; {s['outside_range']} outside {where} left out"
         warn(
             "verify",
             f"{s['outside_range']} of {m.size} check points lie outside {where} (first: "
-            f"{args.check}, row {first}); they are not judged",
+            f"{args.check}, row {first_out}); they are not judged",
         )
     n = s["points"]
     print(f"Verified {args.model} at {_points(n)} of {args.check}{outside}.")
@@ -161,10 +161,9 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         )
         return EXIT_NOT_CONFORMING
     if v.mpe is not None and s["outside_range"]:  # a go/no-go passes on every point only
-        first = int(table.rows[np.argmax(~m)])
         print(
             f"Verification failed: {_points(s['outside_range'])} outside the range, not "
-            f"judged, so not shown to conform to the MPE (first: row {first}); the "
+            f"judged, so not shown to conform to the MPE (first: row {first_out}); the "
             f"{_points(n)} inside conform."
         )
         return EXIT_NOT_CONFORMING

@@ -497,6 +497,17 @@ def _search(
     return replace(found, n_candidates=found.n_candidates + ranked) if ranked else found
 
 
+def _length_scales(x: np.ndarray) -> tuple[float, float] | None:
+    """Log length scales of starts at positions ``x`` (n,): short (e^-1 of the median
+    spacing: too short to correlate neighbours) and long (the range); None where all
+    positions are equal."""
+    gaps = np.diff(np.sort(x))
+    gaps = gaps[gaps > 0]
+    if not gaps.size:
+        return None
+    return float(np.log(np.median(gaps))) - 1.0, float(np.log(gaps.sum()))
+
+
 def _component_starts(obj: Objective, b: np.ndarray, n_restarts: int, seed) -> list[np.ndarray]:
     """Starts for a sum or product of two scaled kernels (SE, Matern, periodic) from each
     part fitted alone (its own search, the known noise and learned noise as given):
@@ -519,11 +530,9 @@ def _component_starts(obj: Objective, b: np.ndarray, n_restarts: int, seed) -> l
         isinstance(kern, Sum | Product) and all(isinstance(k, _Scaled) for k in parts) and obj.n > 2
     ):
         return []
-    gaps = np.diff(np.sort(obj.x))
-    gaps = gaps[gaps > 0]
-    if not gaps.size:
+    lengths = _length_scales(obj.x)
+    if lengths is None:
         return []
-    lengths = (math.log(float(np.median(gaps))) - 1.0, math.log(float(gaps.sum())))
     learn = obj.learn_noise
     profile = obj.known is None and learn
     out = []
@@ -575,20 +584,23 @@ def _mirror_runs(obj: Objective, found: OptimResult) -> OptimResult:
         and obj.n > 2
     ):
         return found
+    lengths = _length_scales(obj.x)
+    if lengths is None:
+        return found
+    short = lengths[0]
     b = found.bounds
     theta = np.asarray(found.theta, dtype=float)
-    starts = [np.concatenate([theta[2:4], theta[0:2], theta[4:]])]
-    gaps = np.diff(np.sort(obj.x))
-    gaps = gaps[gaps > 0]
-    if not gaps.size:
-        return found
-    short = math.log(float(np.median(gaps))) - 1.0
+
+    def mirrored(t: np.ndarray) -> np.ndarray:
+        return np.concatenate([t[2:4], t[0:2], t[4:]])
+
+    starts = [mirrored(theta)]
     for i, j in ((0, 2), (2, 0)):
         if theta[i + 1] < theta[j + 1] - WEAK:  # part i (almost) off: switch it on
-            for ls in (short, math.log(float(gaps.sum()))):
+            for ls in lengths:
                 t0 = theta.copy()
                 t0[i : i + 2] = ls, theta[j + 1] - 1.0
-                starts += [t0, np.concatenate([t0[2:4], t0[0:2], t0[4:]])]
+                starts += [t0, mirrored(t0)]
         t0 = theta.copy()
         t0[i] = short
         starts.append(t0)
@@ -611,12 +623,11 @@ def _short_start(obj: Objective, b: np.ndarray, theta: np.ndarray) -> np.ndarray
     kern = obj.kernel
     if not isinstance(kern, _Scaled) or isinstance(kern, Periodic):
         return None
-    gaps = np.diff(np.sort(obj.x))
-    gaps = gaps[gaps > 0]
-    if not gaps.size:
+    lengths = _length_scales(obj.x)
+    if lengths is None:
         return None
     t0 = np.array(theta, dtype=float)
-    t0[0] = np.log(np.median(gaps)) - 1.0
+    t0[0] = lengths[0]
     if obj.learn_noise:
         t0[1:] = theta[2], theta[2] - 10.0
     return np.minimum(np.maximum(t0, b[:, 0]), b[:, 1])

@@ -55,8 +55,11 @@ def submit_all(pool: ProcessPoolExecutor, fn: Callable, calls: Iterable[tuple]) 
 
 
 def ignore_interrupts() -> None:
-    """In a worker's initializer: ignore SIGINT (a Ctrl-C pending since the worker's start
-    is dropped) and unblock it."""
+    """Ignore SIGINT from now on, and unblock it: in a worker's initializer (a Ctrl-C
+    pending since the worker's start is dropped), or in a command that ends interrupted
+    (a further Ctrl-C while it exits changes nothing). Only in the main thread."""
+    if not _main_thread():
+        return
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if _MASKS:
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})

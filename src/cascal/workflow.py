@@ -936,8 +936,7 @@ def _device_fit(
     else:
         error = None
     if error is not None:
-        if Path(out).is_file():
-            Path(out).unlink()
+        _discard(out)
         return DeviceResult(name, device, error=error)
     return DeviceResult(
         name,
