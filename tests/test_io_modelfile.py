@@ -251,6 +251,23 @@ def test_an_edited_hyperparameter_with_a_valid_checksum_is_refused(saved, stage,
         load_model(saved)
 
 
+def test_a_factor_with_recorded_jitter_is_accepted_and_an_edited_jitter_is_not():
+    """The factor check adds the recorded jitter to the diagonal: a fit that needed jitter
+    (50 readings 1 mm apart, SE(0.2, 1e-4), no noise) passes, and its jitter raised a
+    millionfold does not (the review's check had seen no fit with jitter)."""
+    from dataclasses import replace
+
+    x = np.linspace(0.0, 0.05, 50)
+    hyper = {"length_scale": 0.2, "variance": 1e-4}
+    fit = fit_gp(x, x + 1e-3 * np.sin(20 * x), noise=0.0, learn_noise=False, hyperparameters=hyper)
+    assert fit.jitter > 0.0
+    mf._check_factor(fit)
+    with pytest.raises(ValueError, match=r"cholesky does not factorise the covariance"):
+        mf._check_factor(replace(fit, jitter=1e6 * fit.jitter))
+    with pytest.raises(ValueError, match=r"cholesky does not factorise the covariance"):
+        mf._check_factor(replace(fit, kernel=SquaredExp(0.2, 1e-4 * (1 + 1e-6))))
+
+
 def test_a_bad_period_is_named_as_such(saved):
     """A review's case: a period of -1.5 read "expected null, got number" (the first of
     the allowed forms), not what is wrong with it."""
