@@ -133,20 +133,43 @@ def load_checked(model: str, **outputs: str | None):
 
 def check_not_inputs(model: str, loaded, **outputs: str | None) -> None:
     """Refuse an output (by option name: ``o=...``, ``plot=...``; None for none) that is
-    one of the files the model ``loaded`` from file ``model`` was fitted from, found as
-    ``cascal info`` finds them: writing it would destroy that file."""
+    one of the files the model ``loaded`` from file ``model`` was fitted from: found as
+    ``cascal info`` finds them, or, wherever it lies, an existing file whose SHA-256 is
+    one the model recorded (a fit run from another folder: a review's report written over
+    ``../data/reference.csv``). Writing it would destroy that file."""
     from .cli_info import input_paths
 
     for option, out in outputs.items():
         if out is None or is_stdout(out):
             continue
+        flag = f"-{option}" if len(option) == 1 else f"--{option}"
         for src in loaded.sources:
             for path in input_paths(src.file, Path(model).parent):
                 if same_file(out, path):
-                    flag = f"-{option}" if len(option) == 1 else f"--{option}"
                     raise InputError(
                         f"{flag} {out}: is the input file {src.file} of {model}; not overwritten"
                     )
+        digest = _sha256(out)
+        for src in loaded.sources:
+            if digest is not None and digest == src.sha256:
+                raise InputError(
+                    f"{flag} {out}: holds the input file {src.file} of {model} (the same "
+                    "SHA-256); not overwritten"
+                )
+
+
+def _sha256(path: str | Path) -> str | None:
+    """The SHA-256 of the regular file ``path``, or None where there is none to read."""
+    import hashlib
+
+    p = Path(path)
+    try:
+        if not p.is_file():
+            return None
+        with p.open("rb") as f:
+            return hashlib.file_digest(f, "sha256").hexdigest()
+    except OSError:
+        return None
 
 
 def add_outputs(p: argparse.ArgumentParser, stem: str, table: str, figure: str, func) -> None:
@@ -490,6 +513,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
     check_output(args.output, inputs=(args.model,))
     model = load_checked(args.model, o=args.output)
+    if not is_stdout(args.output) and Path(args.output).suffix.lower() not in (".html", ".htm"):
+        raise InputError(f"-o {args.output}: expected an .html file name (the report is HTML)")
     path = write_text(args.output, build_report(model, source=Path(args.model).name))
     print(f"Report written to {path}")
     return 0

@@ -138,3 +138,37 @@ def test_outputs_never_overwrite_the_models_input_files(linear_files, tmp_path):
         assert res.returncode == 2, (args, res.stderr)
         assert "is the input file" in res.stderr and "Traceback" not in res.stderr
     assert {p: p.read_bytes() for p in (ref, dev)} == before
+
+
+def test_outputs_never_overwrite_an_input_file_fitted_from_another_folder(
+    linear_files, tmp_path, monkeypatch, capsys
+):
+    """A review's case: ``fit data/ref.csv data/dev.csv -o models/m.json`` run from the
+    project folder, then ``report m.json -o ../data/ref.csv`` from ``models/``: the
+    recorded paths (relative to the project) were not found from there, and the reference
+    data were replaced by HTML with exit 0. An existing file with an input's recorded
+    SHA-256 is refused wherever it lies; and a report is written to .html names only."""
+    from cascal.cli import main
+
+    (ref, dev), _ = linear_files
+    (tmp_path / "data").mkdir()
+    (tmp_path / "models").mkdir()
+    ref, dev = (shutil.copy(f, tmp_path / "data" / f.name) for f in (ref, dev))
+    before = {p: p.read_bytes() for p in (ref, dev)}
+    monkeypatch.chdir(tmp_path)
+    assert main(["fit", f"data/{ref.name}", f"data/{dev.name}", "-o", "models/m.json"]) == 0
+    monkeypatch.chdir(tmp_path / "models")
+    capsys.readouterr()
+    for args in (
+        ["report", "m.json", "-o", f"../data/{ref.name}"],
+        ["export", "m.json", "-o", f"../data/{dev.name}"],
+        ["correct", "m.json", f"../data/{dev.name}", "-o", f"../data/{ref.name}"],
+    ):
+        assert main(args) == 2, args
+        err = capsys.readouterr().err
+        assert "holds the input file data/" in err and "(the same SHA-256)" in err, err
+    assert {p: p.read_bytes() for p in (ref, dev)} == before
+    assert main(["report", "m.json", "-o", "report.csv"]) == 2
+    assert "expected an .html file name" in capsys.readouterr().err
+    assert not (tmp_path / "models" / "report.csv").exists()
+    assert main(["report", "m.json", "-o", "report.HTML"]) == 0
