@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -141,17 +142,24 @@ int main(void)
 
 
 @pytest.mark.skipif(shutil.which("cc") is None, reason="needs a C compiler")
-@pytest.mark.parametrize("periodic", [False, True])
+@pytest.mark.parametrize("periodic", [False, True, "arc"])
 def test_generated_c_matches_the_library(tmp_path, periodic):
     """The header compiles warning-free as C99 and corrects every reading (inside, at the
     ends, outside, huge, infinite, NaN) to the same double as the library's table, with the
-    same flag."""
+    same flag; a periodic table with an arc its device readings left out flags that arc,
+    in every turn, and not its ends."""
     if periodic:
         period = 360.0
         table = compensation_table(
             lambda x: x + 0.02 * np.sin(np.deg2rad(x)), 0.0, period, 1e-7, period=period
         )
         r = np.array([0.0, 0.1, 359.99, 360.0, 725.3, -10.0, 1e300, np.nan, np.inf, -np.inf])
+        if periodic == "arc":
+            table = replace(table, arc=(199.8, 165.3))
+            arc = np.array([199.8, 199.81, 250.0, 365.09, 365.11, 5.0, 5.2, -160.0, 919.9])
+            r = np.concatenate([r, arc, arc + 720.0])
+            flagged = table(arc)[1].tolist()
+            assert flagged == [False, True, True, True, False, True, False, True, True]
     else:
         table = compensation_table(_smooth(1e-3, 4.0), 0.1, 0.9, 1e-8)
         ends = [0.1, 0.9, np.nan, np.inf, -np.inf, 1e300, -1e300]
@@ -192,3 +200,33 @@ def test_two_tables_of_one_name_do_not_hide_each_other(tmp_path):
     assert compiles("ax1", "again").returncode == 0  # one table, included twice
     clash = compiles("ax1", "ax2")
     assert clash.returncode != 0 and "comp_CORRECTION" in clash.stderr
+
+
+def test_a_rotary_device_measured_over_part_of_the_turn_flags_the_rest():
+    """A review's case: a rotary device measured from 5 to 200 degrees only was reported as
+    calibrated over the full turn; readings at 250 and 300 degrees (u 110 times that inside)
+    were corrected unflagged, and the C table returned 0 there. The arc the device readings
+    leave out is now flagged by ``correct`` and by the table, alike; a full turn is not."""
+    from dataclasses import replace as replaced
+
+    from cascal.demo import rotary_demo
+    from cascal.workflow import unmeasured_arc
+    from utils import demo_stages
+
+    case = rotary_demo(0)
+    full = fit_model(demo_stages(case), kernel="periodic", period=360.0, n_restarts=1)
+    assert unmeasured_arc(full) is None
+    dev = case.stages[1]
+    keep = (dev.x > 5.0) & (dev.x < 200.0)
+    part = replaced(case, stages=(case.stages[0], replaced(dev, x=dev.x[keep], y=dev.y[keep])))
+    model = fit_model(demo_stages(part), kernel="periodic", period=360.0, n_restarts=1)
+    start, end = unmeasured_arc(model)
+    assert start == dev.x[keep].max() and end == dev.x[keep].min()
+    r = np.array([100.0, 250.0, 300.0, end - 1.0, end, start, start + 1.0, 100.0 - 720.0])
+    c = correct(model, r)
+    assert c.out_of_range.tolist() == [False, True, True, True, False, False, True, False]
+    assert np.min(c.u[1:3]) > 10.0 * np.max(c.u[~c.out_of_range])  # deep in the arc
+    table = compensation(model)
+    assert table.arc == (start, (end - start) % 360.0)
+    assert table(r)[1].tolist() == c.out_of_range.tolist()
+    assert not correct(full, r).out_of_range.any() and compensation(full).arc is None

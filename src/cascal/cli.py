@@ -334,7 +334,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     from .io.csvout import auto_decimals, write_columns
     from .io.data import read_readings
     from .text import range_text
-    from .workflow import correct, far_off
+    from .workflow import correct, far_off, unmeasured_arc
 
     check_output(args.output, inputs=(args.model, args.readings))
     model = load_checked(args.model, o=args.output)
@@ -347,6 +347,12 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     where = f"outside the calibrated range {range_text(lo, hi)} {model.unit}"
     if model.periodic:  # every turn is calibrated: only a reading too large is flagged
         where = "so far out that a float64 holds them less finely than their u"
+        arc = unmeasured_arc(model)  # or one in the part of the turn never measured
+        if arc is not None:
+            where = (
+                f"in the part of the turn the device readings leave out ({arc[0]:.9g} to "
+                f"{arc[1]:.9g} {model.unit}), or {where}"
+            )
     unit_hint = ""
     if n_out == out.size > 1 and not model.periodic and far_off(c.reading, lo, hi):
         unit_hint = f"; all far off: readings in another unit than the model's ({model.unit})?"
@@ -372,6 +378,8 @@ def _cmd_correct(args: argparse.Namespace) -> int:
         what = "left empty" if args.out_of_range == "empty" else "extrapolated, do not trust them"
         if model.periodic and args.out_of_range != "empty":
             what = "rounded beyond their u, do not trust them"
+            if unmeasured_arc(model) is not None:
+                what = "extrapolated or rounded beyond their u, do not trust them"
         warn(
             "correct",
             f"{n_out} of {out.size} readings lie {where} (first: {args.readings}, row {first}); "
@@ -625,7 +633,7 @@ def _level(args: argparse.Namespace) -> float:
 def model_lines(model) -> list[str]:
     """One line per stage (file, rows, points, hyperparameters), then the calibrated
     range."""
-    from .text import hyperparameter_unit, range_text
+    from .text import arc_text, hyperparameter_unit, range_text
 
     lines = []
     for k, (m, src, counts) in enumerate(
@@ -641,7 +649,8 @@ def model_lines(model) -> list[str]:
         lines.append(f"Stage {k} ({src.file}: {src.rows} rows{left}, {counts.size} points): {text}")
     lo, hi = model.calibrated_range
     span = f"full turn (period {model.period:g})" if model.periodic else range_text(lo, hi)
-    return [*lines, f"Calibrated device range: {span} {model.unit}"]
+    arc = arc_text(model)
+    return [*lines, f"Calibrated device range: {arc or f'{span} {model.unit}'}"]
 
 
 def _fleet_csv(results, notes: dict[str, list[str]]) -> str:

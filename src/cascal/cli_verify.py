@@ -51,8 +51,16 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     s, unit = v.summary(), model.unit
     lo, hi = model.calibrated_range
     where = f"the calibrated range {range_text(lo, hi)} {unit}"
-    if model.periodic:  # every turn is calibrated
+    if model.periodic:  # every turn is calibrated, less an arc the device readings left out
+        from .workflow import unmeasured_arc
+
         where = f"the range a float64 holds to better than u (any turn of {model.period:g} {unit})"
+        arc = unmeasured_arc(model)
+        if arc is not None:
+            where = (
+                f"the arc {arc[1]:.9g} to {arc[0]:.9g} {unit} (of any turn of "
+                f"{model.period:g} {unit}) that the device readings cover"
+            )
     if s["points"] == 0:
         from .workflow import far_off
 

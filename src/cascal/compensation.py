@@ -45,6 +45,9 @@ class CompensationTable:
         tolerance: Interpolation error the table was built to, reading unit.
         error: Largest interpolation error found at the check points, reading unit.
         checked: Number of check points.
+        arc: For a periodic table, ``(start, width)``: readings whose angle lies strictly
+            between ``start`` and ``start + width`` (modulo the period) are flagged, the
+            part of the turn the device readings left out; None for none.
     """
 
     lo: float
@@ -56,6 +59,7 @@ class CompensationTable:
     tolerance: float
     error: float
     checked: int
+    arc: tuple[float, float] | None = None
 
     @property
     def n(self) -> int:
@@ -77,6 +81,8 @@ class CompensationTable:
                 t = np.fmod(r - self.lo, self.period)
                 t = np.where(t < 0.0, t + self.period, t) / self.step
                 outside = np.isnan(t)
+                if self.arc is not None:
+                    outside |= in_arc(r, self.arc, self.period)
             else:
                 t = (r - self.lo) / self.step
                 outside = ~((r >= self.lo) & (r <= self.hi))
@@ -85,6 +91,16 @@ class CompensationTable:
         t = t - i
         c = self.correction
         return r + (c[i] + t * (c[i + 1] - c[i])), outside
+
+
+def in_arc(readings: np.ndarray, arc: tuple[float, float], period: float) -> np.ndarray:
+    """True where a reading's angle lies strictly inside ``arc = (start, width)`` modulo
+    ``period``, computed as the generated C function does (``fmod``, then one addition)."""
+    start, width = arc
+    with np.errstate(invalid="ignore"):
+        a = np.fmod(np.asarray(readings, dtype=float) - start, period)
+        a = np.where(a < 0.0, a + period, a)
+        return (a > 0.0) & (a < width)
 
 
 def compensation_table(

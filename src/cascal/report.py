@@ -22,7 +22,7 @@ from .io.modelfile import CalibrationModel
 from .plots import figure_style, plot_change, plot_plan, plot_verification
 from .reportdata import CurveView, StageView, correction_curve, stage_views
 from .screening import LEVEL, Screening
-from .text import caution_lines, hyperparameter_unit, range_text
+from .text import arc_text, caution_lines, hyperparameter_unit, range_text
 from .verification import Comparison, Verification
 from .workflow import MeasurementPlan, plan_measurements
 
@@ -194,7 +194,7 @@ def build_report(
     e = html.escape
     unit = model.unit
     lo, hi = model.calibrated_range
-    rng = (
+    rng = arc_text(model) or (
         "full turn (period " + _num(model.period) + f" {unit})"
         if model.periodic
         else f"{range_text(lo, hi)} {unit}"

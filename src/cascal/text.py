@@ -45,6 +45,22 @@ def _inward(v: float, digits: int, rounding: str) -> str:
     return f"{float(q):.{digits}g}"
 
 
+def arc_text(model) -> str | None:
+    """``"a to b unit of the turn (period p; c to d unit left out: readings there are
+    flagged)"`` for a periodic model whose device readings cover part of the turn only
+    (:func:`cascal.workflow.unmeasured_arc`), else None."""
+    from .workflow import unmeasured_arc
+
+    arc = unmeasured_arc(model)
+    if arc is None:
+        return None
+    (left, back), u = arc, model.unit  # measured from where the gap ends round to its start
+    return (
+        f"{back:.9g} to {left:.9g} {u} of the turn (period {model.period:g}; the device "
+        f"readings leave out {left:.9g} to {back:.9g} {u}: readings there are flagged)"
+    )
+
+
 def hyperparameter_unit(name: str, unit: str, periodic: bool) -> str:
     """The unit of a hyperparameter, with a leading space (empty where dimensionless): a
     length scale and a period in ``unit`` (the periodic kernel's length scale is relative

@@ -23,7 +23,7 @@ from scipy.linalg import solve_triangular
 
 from . import pool
 from .cascade import Cascade
-from .compensation import MAX_NODES, CompensationTable, compensation_table
+from .compensation import MAX_NODES, CompensationTable, compensation_table, in_arc
 from .errors import CascalError, CascalWarning, InputError, NumericalError
 from .gp import FittedGP
 from .io.data import Source, StageData, read_stage
@@ -54,6 +54,7 @@ __all__ = [
     "screen_stages",
     "shares_upstream",
     "summarize_device",
+    "unmeasured_arc",
     "verify_model",
 ]
 
@@ -72,8 +73,8 @@ class Correction:
         u: Standard uncertainty of each correction (of the calibration map at that
             reading, not of the reading's own repeatability), shape (m,); NaN for ``lut``.
         out_of_range: True where the reading lies outside the calibrated range (a periodic
-            model's covers every turn: where a float64 holds the reading less finely than
-            its u), shape (m,).
+            model's covers every turn, less any arc its device readings left out: there,
+            or where a float64 holds the reading less finely than its u), shape (m,).
     """
 
     reading: np.ndarray
@@ -424,14 +425,46 @@ def _reversed(above: StageData, stage: StageData) -> bool:
     return xs == ya and ys != xa
 
 
+#: A rotary device's readings leave part of the turn unmeasured where the largest gap
+#: between neighbouring angles exceeds this many times their median spacing and
+#: :data:`_ARC_TURN` of the period.
+_ARC_SPACINGS = 4.0
+_ARC_TURN = 1.0 / 36.0
+
+
+def arc_width(arc: tuple[float, float], period: float) -> tuple[float, float]:
+    """``(start, width)`` of an arc ``(start, end)`` of :func:`unmeasured_arc`."""
+    return arc[0], float(np.mod(arc[1] - arc[0], period))
+
+
+def unmeasured_arc(model: CalibrationModel) -> tuple[float, float] | None:
+    """For a periodic model whose device readings cover only part of the turn, the arc
+    ``(start, end)`` they leave out, as angles in ``[0, period)`` (from ``start`` up to
+    ``end``, through the period where ``end < start``); None where they cover the turn
+    (no gap between neighbouring angles over 4 median spacings and a 36th of the turn)
+    or the model is not periodic."""
+    if not model.periodic:
+        return None
+    period = float(model.period)
+    angles = np.unique(np.mod(model.fitted.stages[-1].x, period))
+    if angles.size < 2:
+        return None
+    gaps = np.diff(np.append(angles, angles[0] + period))
+    i = int(np.argmax(gaps))
+    if gaps[i] <= max(_ARC_SPACINGS * float(np.median(gaps)), _ARC_TURN * period):
+        return None
+    return float(angles[i]), float(angles[(i + 1) % angles.size])
+
+
 def correct(model: CalibrationModel, readings: object) -> Correction:
     """Correct device readings (m,) with the model's last stage.
 
     Readings outside the calibrated range are flagged; they are still corrected, by the
     GP's extrapolation (back to the prior mean, with a growing u) or the lookup table's
     held end offset. A periodic model covers every turn: a reading is corrected as its
-    angle in the calibrated turn, and flagged only where it is so large that a float64
-    holds it less finely than its u.
+    angle in the calibrated turn, and flagged where that angle lies in the part of the turn
+    the device readings left out (:func:`unmeasured_arc`) or where the reading is so large
+    that a float64 holds it less finely than its u.
     """
     r = as_positions(readings, "readings")
     lo, hi = model.calibrated_range
@@ -442,6 +475,9 @@ def correct(model: CalibrationModel, readings: object) -> Correction:
         corrected, u = device(r), np.full(r.shape, np.nan)
     if model.periodic:  # a reading too large for its correction's digits
         out = np.spacing(np.abs(r)) > u
+        arc = unmeasured_arc(model)
+        if arc is not None:  # or in the part of the turn the device was not measured on
+            out |= in_arc(r, arc_width(arc, float(model.period)), float(model.period))
     else:
         out = (r < lo) | (r > hi)
     return Correction(r, corrected, u, out)
@@ -636,7 +672,8 @@ def compensation(
             f"a table within {tolerance:.3g} {model.unit} needs more than {MAX_NODES} nodes; "
             "give a larger tolerance"
         )
-    return table
+    arc = unmeasured_arc(model)
+    return table if arc is None else replace(table, arc=arc_width(arc, float(model.period)))
 
 
 @dataclass(frozen=True, slots=True)

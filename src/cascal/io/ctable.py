@@ -64,6 +64,16 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
         )
         extra = f"static const double {p}_PERIOD = {table.period!r};\n"
         include = "#include <math.h> /* fmod: link with -lm */\n\n"
+        if table.arc is not None:  # the part of the turn the device readings left out
+            reduce += (
+                f"    double a = fmod(reading - {p}_ARC_START, {p}_PERIOD);\n"
+                f"    if (a < 0.0) a += {p}_PERIOD;\n"
+                f"    if (a > 0.0 && a < {p}_ARC_WIDTH) status = 1; /* never measured */\n"
+            )
+            extra += (
+                f"static const double {p}_ARC_START = {table.arc[0]!r};\n"
+                f"static const double {p}_ARC_WIDTH = {table.arc[1]!r};\n"
+            )
     else:
         reduce = (
             f"    double t = (reading - {p}_LO) / {p}_STEP;\n"
@@ -74,6 +84,9 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
         extra, include = f"static const double {p}_HI = {table.hi!r};\n", ""
     returns = (
         "Returns 0, or 1 for an infinite or NaN reading."
+        if table.period is not None and table.arc is None
+        else "Returns 0, or 1 for an infinite or NaN reading or one in the part of\n * the "
+        "turn the device readings left out (from ARC_START over ARC_WIDTH)."
         if table.period is not None
         else "Returns 0 inside the calibrated range, 1 outside\n * it or for a NaN reading "
         "(the nearest end's correction is then held)."

@@ -135,7 +135,8 @@ class CalibrationModel:
 
     @property
     def periodic(self) -> bool:
-        """True for a periodic kernel: the model covers a full turn."""
+        """True for a periodic kernel: the model corrects every turn (less any arc its device
+        readings left out: :func:`cascal.workflow.unmeasured_arc`)."""
         return self.period is not None
 
 
