@@ -25,7 +25,7 @@ from . import pool
 from .cascade import Cascade
 from .compensation import MAX_NODES, CompensationTable, compensation_table, in_arc
 from .errors import CascalError, CascalWarning, InputError, NumericalError
-from .gp import FittedGP
+from .gp import FittedGP, pin_blas
 from .io.data import Source, StageData, read_stage
 from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
@@ -919,9 +919,12 @@ def _discard(out: str) -> None:
 
 def _init_worker(stop) -> None:
     """Worker start: Ctrl-C is the parent's to handle (a device under way finishes, and
-    its model is whole); ``stop`` tells the worker to start no further device."""
+    its model is whole); ``stop`` tells the worker to start no further device. BLAS runs
+    on one thread: the workers share the cores, and a review found models of workers on
+    two BLAS threads each differing from `cascal fit`'s in their last digits."""
     global _STOP
     pool.ignore_interrupts()
+    pin_blas()
     _STOP = stop
 
 

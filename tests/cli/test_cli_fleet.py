@@ -78,6 +78,26 @@ def test_device_model_equals_a_plain_fit_of_both_stages(fleet):
     assert tb_model["stages"][0] == b["stages"][0]
 
 
+def _blas_threads() -> int:
+    from threadpoolctl import threadpool_info
+
+    return max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+
+def test_fleet_workers_run_blas_on_one_thread():
+    """A review's case: devices of 150 points fitted by two workers, each on two BLAS
+    threads, differed from ``cascal fit``'s models in their last digits (length scale
+    0.04423546118965255 against 0.04423546118961811); workers now pin BLAS to one thread,
+    with which they equal the plain fit's."""
+    import multiprocessing
+
+    from cascal import workflow
+
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(1, initializer=workflow._init_worker, initargs=(None,)) as p:
+        assert p.apply(_blas_threads) == 1
+
+
 def test_parser_refuses_negative_seeds_too_many_trials_and_odd_units(tmp_path):
     for argv in (
         ["fit", tmp_path / "a.csv", "-o", tmp_path / "m.json", "--seed", "-1"],
