@@ -124,7 +124,10 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
             text.replace('"schema_version": 1', '"schema_version": 0'),
             ["schema version 0", "not supported"],
         ),
-        "model_not_json": ("stage,x\n1,2\n", ["not a valid model file"]),
+        "model_not_json": (
+            "stage,x\n1,2\n",
+            ["not a valid model file: it starts with 'stage,x'", "reads like a CSV file"],
+        ),
         "model_other_json": (json.dumps({"stages": doc["stages"][:1]}), ["not a cascal model"]),
     }
     for name, (content, words) in variants.items():

@@ -232,6 +232,21 @@ def load_model_checksum(path: str | os.PathLike) -> tuple[CalibrationModel, str]
 def _parse(text: str, name: str) -> tuple[CalibrationModel, str]:
     """The model in a model file's text and its checksum; ModelFileError naming ``name``
     if it is none."""
+    start = text.lstrip("\ufeff \t\r\n")
+    if start and not start.startswith("{"):  # a model file is one JSON object
+        first = start.splitlines()[0]
+        csv_like = Path(name).suffix.lower() in (".csv", ".tsv", ".txt") or (
+            any(sep in first for sep in ",;\t") and not first.startswith(("[", '"'))
+        )
+        hint = (
+            ": it reads like a CSV file; the model file comes first (MODEL.json READINGS.csv)?"
+            if csv_like
+            else ""
+        )
+        raise ModelFileError(
+            f"{name}: not a valid model file: it starts with {first[:40]!r}, not with '{{' "
+            f"as a cascal model (JSON) does{hint}"
+        )
     try:
         doc = json.loads(text, parse_constant=_reject_constant, parse_float=_float, parse_int=_int)
     except json.JSONDecodeError as exc:
