@@ -88,7 +88,8 @@ def _check_reach(model, reach: list[tuple[float, float]] | None, warn) -> None:
     """Warn of a ``--reach`` interval more than the span of the test-bed readings the
     model holds (stage 0's, and stage 1's targets) away from them: measurements there
     inform none of its corrections, and its unit may differ (a review's case: 5:6 on a
-    1 m axis planned five measurements with no word of it)."""
+    1 m axis planned five measurements with no word of it); and, more mildly, of one
+    wholly outside them."""
     import numpy as np
 
     from .text import range_text
@@ -105,6 +106,13 @@ def _check_reach(model, reach: list[tuple[float, float]] | None, warn) -> None:
                 f"--reach {a:.9g}:{b:.9g} lies more than their span away from the test-bed "
                 f"readings of the model ({range_text(lo, hi)} {model.unit}): measurements "
                 "there inform none of its corrections (readings in another unit?)",
+            )
+        elif b < lo or a > hi:  # (a review's case: 0.5:0.9 typed for 0.05:0.09)
+            warn(
+                "plan",
+                f"--reach {a:.9g}:{b:.9g} lies wholly outside the test-bed readings of the "
+                f"model ({range_text(lo, hi)} {model.unit}): measurements there inform only "
+                "the corrections near its nearer end (a typing slip?)",
             )
 
 

@@ -58,6 +58,9 @@ def test_reach_limits_the_proposals(linear_model, tmp_path):
     assert "(readings in another unit?)" in far.stderr
     near = run_cascal("plan", linear_model, "-n", "2", "--reach", "1.1:1.2")
     assert near.returncode == 0 and "away from the test-bed readings" not in near.stderr
+    assert "--reach 1.1:1.2 lies wholly outside the test-bed readings" in near.stderr
+    inside = run_cascal("plan", linear_model, "-n", "2", "--reach", "0.95:1.2")
+    assert inside.returncode == 0 and "outside the test-bed readings" not in inside.stderr
 
 
 def test_negative_readings_and_covered_stretches(linear_model, tmp_path):
