@@ -253,6 +253,20 @@ def test_excluding_a_row_that_holds_no_data_is_refused(tmp_path, row, words):
     assert exc.value.row == row
 
 
+@pytest.mark.parametrize(("eol", "bom"), [(b"\n", b""), (b"\r\n", b"\xef\xbb\xbf"), (b"\r", b"")])
+def test_windows_1252_text_is_named_with_its_row(tmp_path, eol, bom):
+    """A review's case: a non-breaking space after a number in row 4 (Windows-1252, as a
+    spreadsheet saves plain CSV) was named by its byte offset alone."""
+    p = tmp_path / "cp1252.csv"
+    rows = ["a,b", "1,1", "2,2", "3\u00a0,3", "4,4"]
+    p.write_bytes(bom + eol.join(r.encode("cp1252") for r in rows) + eol)
+    with pytest.raises(
+        InputError, match=r"not UTF-8 text \(byte 0xa0, .*save it as CSV UTF-8"
+    ) as exc:
+        read_stage(p)
+    assert exc.value.row == 4 and "row 4" in str(exc.value)
+
+
 def test_utf16_files_are_named_as_such(tmp_path):
     p = tmp_path / "unicode.txt"
     p.write_bytes("a,b\n1,1\n2,2\n3,3\n".encode("utf-16"))  # with its byte-order mark

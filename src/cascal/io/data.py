@@ -151,7 +151,14 @@ def read_table(
             raise InputError(
                 "UTF-16 text, not UTF-8: save it as CSV (UTF-8) instead", file=name
             ) from None
-        raise InputError(f"not UTF-8 text ({exc.reason} at byte {exc.start})", file=name) from None
+        head = exc.object[: exc.start]  # (after a BOM)
+        row = head.count(b"\n") + 1 if b"\n" in exc.object else head.count(b"\r") + 1
+        raise InputError(
+            f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x}, {exc.reason}): saved as "
+            "Windows-1252 or Latin-1 (a spreadsheet's plain CSV)? save it as CSV UTF-8",
+            file=name,
+            row=row,
+        ) from None
     text = text.replace("\r\n", "\n").replace("\r", "\n")  # CRLF, and CR alone (old Macs)
     first = text.split("\n", 1)[0]
     delim = _delimiter(text)
