@@ -27,7 +27,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     from .errors import InputError
     from .io.atomic import save_figure
     from .io.csvout import auto_decimals, write_columns
-    from .io.data import read_table
+    from .io.data import check_units, read_table
     from .text import range_text
     from .verification import expected_within
     from .workflow import verify_model
@@ -40,6 +40,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     hint = "; choose two by name with --x-column and --y-column"
     table = read_table(args.check, (args.x_column, args.y_column), hint=hint, max_abs=HUGE)
     reading, reference = table.columns
+    check_units(reading, reference, table.source.columns, args.check)  # (warns: mm and m?)
     v = verify_model(
         model,
         reading,

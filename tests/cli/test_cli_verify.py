@@ -188,3 +188,21 @@ def bad_runs(linear_model, check_file, tmp_path_factory):
 def test_bad_input_exits_2_and_writes_nothing(bad_runs, name, check_file):
     assert_refused(*bad_runs[name])
     assert check_file.read_text().startswith("device,ref\n")
+
+
+def test_check_points_with_the_reference_in_another_unit_are_warned_of(
+    linear_model, check_file, tmp_path
+):
+    """A review's case: check points with the device readings in m and the reference in
+    mm (as an interferometer exports) were judged as drift ("has the device or the test
+    bed changed since the fit?"); the columns' spans are compared as for a stage file."""
+    src = np.loadtxt(check_file, delimiter=",", skiprows=1)
+    mm = tmp_path / "check_mm.csv"
+    np.savetxt(mm, np.c_[src[:, 0], 1e3 * src[:, 1]], delimiter=",", header="device,reference",
+               comments="", fmt="%.15g")  # fmt: skip
+    res = run_cascal("verify", linear_model, mm)
+    assert res.returncode == 0, res.stderr
+    assert "check_mm.csv: the readings of column 'reference' span" in res.stderr
+    assert "different units (mm and m)?" in res.stderr
+    plain = run_cascal("verify", linear_model, check_file)
+    assert plain.returncode == 0 and "different units" not in plain.stderr

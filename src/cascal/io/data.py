@@ -31,6 +31,7 @@ __all__ = [
     "Source",
     "StageData",
     "Table",
+    "check_units",
     "read_readings",
     "read_stage",
     "read_table",
@@ -223,7 +224,7 @@ def read_stage(
     table = read_table(path, (x_column, y_column), hint=hint, min_rows=MIN_POINTS, exclude=exclude)
     name = table.source.file
     x, y = table.columns
-    _check_units(x, y, table.source.columns, name)  # (before a rotary stage's unwrapping)
+    check_units(x, y, table.source.columns, name)  # (before a rotary stage's unwrapping)
     if period is not None:
         span = float(x.max() - x.min())
         if span >= period:
@@ -298,7 +299,7 @@ def read_stage(
 UNIT_RATIO = 10.0
 
 
-def _check_units(x: np.ndarray, y: np.ndarray, columns: tuple[str, ...], name: str) -> None:
+def check_units(x: np.ndarray, y: np.ndarray, columns: tuple[str, ...], name: str) -> None:
     """Warn (:class:`DataWarning`) where the more accurate readings ``y`` (n,) span over
     :data:`UNIT_RATIO` times, or under its inverse, the span of the readings ``x`` (n,):
     the columns in two units (mm and m, degrees and radians). The spans are those of the
