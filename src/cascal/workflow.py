@@ -957,6 +957,12 @@ def _device_fit(
             period=options.get("period") if options.get("kernel") == "periodic" else None,  # type: ignore[arg-type]
             exclude=options.get("exclude", {}).get(device, ()),  # type: ignore[attr-defined]
         )
+        if data.source.sha256 == prefix.sources[0].sha256:  # (a review: a copy in the folder)
+            raise InputError(
+                f"the test bed's own stage file ({prefix.sources[0].file}, the same "
+                "SHA-256), not a device file",
+                file=device,
+            )
         fit_opts = {
             k: options[k]
             for k in ("method", "kernel", "period", "unit", "n_restarts", "seed", "mean")

@@ -158,6 +158,24 @@ def test_a_device_with_another_zero_is_named_and_fits_with_mean_offset(fleet, tm
     assert "--mean offset" not in runs["offset"].stderr, runs["offset"].stderr
 
 
+def test_a_copy_of_the_test_bed_file_among_the_devices_is_named_as_such(fleet, tmp_path):
+    """A review's case: the test bed's file left in the devices folder was fitted as a
+    device against itself and reported as a device the reference never confirmed."""
+    import shutil
+
+    _, tb, folder, _, _ = fleet
+    devices = tmp_path / "devices"
+    devices.mkdir()
+    shutil.copy(folder / "device01.csv", devices)
+    shutil.copy(tb, devices / "old_testbed.csv")
+    res = run_cascal("fit-devices", tb, "--devices", devices, "-o", tmp_path / "out",
+                     "--jobs", "1", "--restarts", "2")  # fmt: skip
+    assert res.returncode == 1, res.stderr
+    assert "skipped device old_testbed: " in res.stderr
+    assert f"the test bed's own stage file ({tb}, the same SHA-256), not a device" in res.stderr
+    assert sorted(p.name for p in (tmp_path / "out" / "devices").iterdir()) == ["device01.json"]
+
+
 def test_a_device_file_with_its_columns_swapped_is_named(fleet, tmp_path):
     _, tb, folder, _, _ = fleet
     devices = tmp_path / "devices"
