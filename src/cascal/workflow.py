@@ -408,8 +408,10 @@ def _check_inside(
                 "; or, for a rotary axis whose readings wrap at the full turn, fit with the "
                 f"periodic kernel (--kernel periodic --period {turn:.15g})"
             )
+        n = int(stage.counts[i])
+        mean = f" (the mean of this position's {n} rows)" if n > 1 else ""
         raise InputError(
-            f"{stage.source.columns[1]} reading {y!r} lies outside the range "
+            f"{stage.source.columns[1]} reading {y!r}{mean} lies outside the range "
             f"[{lo!r}, {hi!r}] calibrated by the stage above ({out.size} point(s) outside); "
             f"{advice}",
             file=stage.source.file,

@@ -414,3 +414,19 @@ def test_stage_files_in_reverse_order_are_named_as_such(tmp_path):
         "is the second of tb_dev.csv)" in res.stderr  # fmt: skip
     assert not (tmp_path / "m.json").exists()
     assert run_cascal("fit", ref, dev, "-o", tmp_path / "m.json").returncode == 0
+
+
+def test_a_reading_outside_the_range_above_says_when_it_is_a_mean(tmp_path):
+    """A review's case: the message named row 2 and quoted 9.966666666666667e-08, the
+    mean of rows 2 to 4, where row 2 holds 0.000000069."""
+    ref = tmp_path / "ref.csv"
+    x = np.linspace(0.1, 1.0, 10)
+    ref.write_text("testbed,reference\n" + "".join(f"{v!r},{v!r}\n" for v in x.tolist()))
+    dev = tmp_path / "dev.csv"
+    rows = [(0.0, 0.069e-6), (0.0, 0.11e-6), (0.0, 0.12e-6)]
+    rows += [(v, v) for v in np.linspace(0.2, 0.9, 8).tolist()]
+    dev.write_text("device,testbed\n" + "".join(f"{a!r},{b!r}\n" for a, b in rows))
+    res = run_cascal("fit", ref, dev, "-o", tmp_path / "m.json")
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "row 2" in res.stderr
+    assert "(the mean of this position's 3 rows) lies outside the range" in res.stderr
