@@ -137,7 +137,7 @@ def check_not_inputs(model: str, loaded, **outputs: str | None) -> None:
     ``cascal info`` finds them, or, wherever it lies, an existing file whose SHA-256 is
     one the model recorded (a fit run from another folder: a review's report written over
     ``../data/reference.csv``). Writing it would destroy that file."""
-    from .cli_info import input_paths
+    from .cli_info import file_sha256, input_paths
 
     for option, out in outputs.items():
         if out is None or is_stdout(out):
@@ -149,27 +149,13 @@ def check_not_inputs(model: str, loaded, **outputs: str | None) -> None:
                     raise InputError(
                         f"{flag} {out}: is the input file {src.file} of {model}; not overwritten"
                     )
-        digest = _sha256(out)
+        digest = file_sha256(out)
         for src in loaded.sources:
             if digest is not None and digest == src.sha256:
                 raise InputError(
                     f"{flag} {out}: holds the input file {src.file} of {model} (the same "
                     "SHA-256); not overwritten"
                 )
-
-
-def _sha256(path: str | Path) -> str | None:
-    """The SHA-256 of the regular file ``path``, or None where there is none to read."""
-    import hashlib
-
-    p = Path(path)
-    try:
-        if not p.is_file():
-            return None
-        with p.open("rb") as f:
-            return hashlib.file_digest(f, "sha256").hexdigest()
-    except OSError:
-        return None
 
 
 def add_outputs(p: argparse.ArgumentParser, stem: str, table: str, figure: str, func) -> None:
@@ -345,9 +331,9 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     n_out = int(np.count_nonzero(out))
     lo, hi = model.calibrated_range
     where = f"outside the calibrated range {range_text(lo, hi)} {model.unit}"
+    arc = unmeasured_arc(model)  # (a periodic model's part of the turn never measured)
     if model.periodic:  # every turn is calibrated: only a reading too large is flagged
         where = "so far out that a float64 holds them less finely than their u"
-        arc = unmeasured_arc(model)  # or one in the part of the turn never measured
         if arc is not None:
             where = (
                 f"in the part of the turn the device readings leave out ({arc[0]:.9g} to "
@@ -378,7 +364,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
         what = "left empty" if args.out_of_range == "empty" else "extrapolated, do not trust them"
         if model.periodic and args.out_of_range != "empty":
             what = "rounded beyond their u, do not trust them"
-            if unmeasured_arc(model) is not None:
+            if arc is not None:
                 what = "extrapolated or rounded beyond their u, do not trust them"
         warn(
             "correct",

@@ -7,7 +7,7 @@ import argparse
 import hashlib
 from pathlib import Path
 
-__all__ = ["add_info_parser", "input_paths", "input_status"]
+__all__ = ["add_info_parser", "file_sha256", "input_paths", "input_status"]
 
 
 def input_status(
@@ -22,9 +22,21 @@ def input_status(
         return "fitted from arrays in Python, no file", None
     found = input_paths(file, base)
     for path in found:
-        if hashlib.sha256(path.read_bytes()).hexdigest() == sha256:
+        if file_sha256(path) == sha256:
             return "unchanged", path
     return ("changed since the fit", found[0]) if found else ("not found", None)
+
+
+def file_sha256(path: str | Path) -> str | None:
+    """The SHA-256 (hex) of the regular file ``path``, or None where there is none to read."""
+    p = Path(path)
+    try:
+        if not p.is_file():
+            return None
+        with p.open("rb") as f:
+            return hashlib.file_digest(f, "sha256").hexdigest()
+    except OSError:
+        return None
 
 
 def input_paths(file: str | Path, base: Path | None = None) -> list[Path]:
