@@ -151,9 +151,21 @@ def test_generated_c_matches_the_library(tmp_path, periodic):
     if periodic:
         period = 360.0
         table = compensation_table(
-            lambda x: x + 0.02 * np.sin(np.deg2rad(x)), 0.0, period, 1e-7, period=period
+            lambda x: x + 0.02 * np.sin(np.deg2rad(x)),
+            0.0,
+            period,
+            1e-7,
+            period=period,
+            std=None if periodic == "arc" else lambda x: 3e-5 + 1e-5 * np.cos(np.deg2rad(x)),
         )
         r = np.array([0.0, 0.1, 359.99, 360.0, 725.3, -10.0, 1e300, np.nan, np.inf, -np.inf])
+        if periodic is True:  # u on the nodes: flagged from the limit on (2^37 here)
+            assert table.limit == 2.0**37 and np.spacing(2.0**37) > table.u.min() >= 2.0**-16
+            edge = table.limit * np.array([1.0 - 2.0**-53, 1.0, 1.0 + 2.0**-52])
+            r = np.concatenate([r, edge, -edge, [360e9 + 10.0, 1.7976931348623157e308]])
+            assert table(edge)[1].tolist() == [False, True, True]
+        else:  # no u: only infinite and NaN readings are too large
+            assert table.limit == np.inf and table(r)[1].tolist() == 7 * [False] + 3 * [True]
         if periodic == "arc":
             table = replace(table, arc=(199.8, 165.3))
             arc = np.array([199.8, 199.81, 250.0, 365.09, 365.11, 5.0, 5.2, -160.0, 919.9])
@@ -176,6 +188,71 @@ def test_generated_c_matches_the_library(tmp_path, periodic):
     assert [int(s) for s in status] == outside.astype(int).tolist()
     got = np.array([float(v) for v in corrected])
     assert np.array_equal(got, want, equal_nan=True)
+
+
+_TRAPS = """
+#include <fenv.h>
+#include <stdio.h>
+#include "table.h"
+int main(void)
+{
+    double r, c;
+    int raised = 0, flagged = 0;
+    feclearexcept(FE_ALL_EXCEPT);
+    while (scanf("%lf", &r) == 1) {
+        flagged += NAME_correct(r, &c);
+        raised |= fetestexcept(FE_INVALID) != 0;
+    }
+    printf("%d %d\\n", raised, flagged);
+    return 0;
+}
+"""
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="needs a C compiler")
+@pytest.mark.parametrize("periodic", [False, True])
+def test_generated_c_raises_no_invalid_operation_for_nan_or_infinity(tmp_path, periodic):
+    """A review's case: a NaN reading (and an infinite one on a rotary table) raised the
+    invalid-operation exception (an ordered comparison with NaN, fmod of an infinity), which
+    a controller that traps it (a Cortex-M fault handler, feenableexcept) turns into a crash
+    instead of status 1. The function now compares quietly and flags them all."""
+    if periodic:
+        table = compensation_table(
+            lambda x: x + 0.02 * np.sin(np.deg2rad(x)), 0.0, 360.0, 1e-6, period=360.0
+        )
+    else:
+        table = compensation_table(_smooth(1e-3, 4.0), 0.1, 0.9, 1e-7)
+    (tmp_path / "table.h").write_text(c_header(table, "NAME", ["traps"]))
+    (tmp_path / "main.c").write_text(_TRAPS)
+    exe = tmp_path / "main"
+    cmd = ["cc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-o", exe, "main.c", "-lm"]
+    subprocess.run(cmd, cwd=tmp_path, check=True, capture_output=True)
+    text = "nan\n-nan\ninf\n-inf\n0.5\n"
+    out = subprocess.run([exe], input=text, capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["0", "4"]
+
+
+def test_a_rotary_table_flags_every_reading_that_correct_flags_as_too_large():
+    """A review's case: readings of 1e12 to 1e18 degrees, whose correction a double no longer
+    holds, got status 0 from the C function while ``correct`` flagged them. The table now
+    flags from the magnitude where a double's step exceeds the smallest u on its nodes;
+    ``correct`` flags by each reading's own u, never below that: every reading it flags,
+    the table flags too, and neither flags one a million turns away."""
+    from cascal.demo import rotary_demo
+
+    model = fit_model(demo_stages(rotary_demo(0)), kernel="periodic", period=360.0,
+                      unit="deg", n_restarts=2)  # fmt: skip
+    table = compensation(model)
+    angles = np.linspace(0.0, 359.0, 37)
+    both = 0
+    for turns in (10**6, 10**9, 10**10, 10**11, 10**12, 10**15):
+        r = np.concatenate([angles + 360.0 * turns, -angles - 360.0 * turns])
+        lib, tab = correct(model, r).out_of_range, table(r)[1]
+        assert not np.any(lib & ~tab), turns
+        both += int(lib.all())
+        if turns == 10**6:
+            assert not tab.any()
+    assert both >= 2 and table(np.array([1e18, -1e18, 2.0**1000]))[1].all()
 
 
 @pytest.mark.skipif(shutil.which("cc") is None, reason="needs a C compiler")

@@ -51,12 +51,15 @@ def input_paths(file: str | Path, base: Path | None = None) -> list[Path]:
 
 def _cmd_info(args: argparse.Namespace) -> int:
     from .cli import model_lines, warn, warn_cautions
-    from .io.modelfile import load_model, schema_version
+    from .io.modelfile import load_model_checksum, schema_version
     from .workflow import summarize_device
 
-    model = load_model(args.model)
+    model, checksum = load_model_checksum(args.model)
     n = len(model.fitted.models)
     print(f"{args.model}: cascal model file, schema {schema_version(model)}, checksum verified")
+    digest = file_sha256(args.model)  # (None for a pipe)
+    file = "" if digest is None else f"SHA-256 of the file {digest}; "
+    print(f"{file}content checksum (sha256) {checksum}")
     print(
         f"Fitted {model.created} with cascal {model.cascal_version} (seed {model.seed}, "
         f"{model.n_restarts} optimiser starts per stage)"

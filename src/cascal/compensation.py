@@ -48,6 +48,11 @@ class CompensationTable:
         arc: For a periodic table, ``(start, width)``: readings whose angle lies strictly
             between ``start`` and ``start + width`` (modulo the period) are flagged, the
             part of the turn the device readings left out; None for none.
+
+    A periodic table also flags a reading from :attr:`limit` on (in magnitude): where a
+    float64 holds the reading less finely than the smallest u on the nodes, its correction
+    is lost to rounding. :func:`cascal.workflow.correct` flags by each reading's own u
+    (not smaller), so the table flags every reading it flags, and a few more.
     """
 
     lo: float
@@ -60,6 +65,16 @@ class CompensationTable:
     error: float
     checked: int
     arc: tuple[float, float] | None = None
+
+    @property
+    def limit(self) -> float:
+        """Smallest reading magnitude a periodic table flags as too large for its
+        correction's digits: the power of two from which a float64's step exceeds the
+        smallest u on the nodes; inf for a table without u or not periodic."""
+        if self.period is None or self.u is None or not np.all(self.u > 0.0):
+            return math.inf
+        k = math.frexp(float(np.min(self.u)))[1]  # u_min in [2^(k-1), 2^k)
+        return math.ldexp(1.0, k + 52)  # the step there is 2^k > u_min; just below, <= u_min
 
     @property
     def n(self) -> int:
@@ -80,7 +95,7 @@ class CompensationTable:
             if self.period is not None:
                 t = np.fmod(r - self.lo, self.period)
                 t = np.where(t < 0.0, t + self.period, t) / self.step
-                outside = np.isnan(t)
+                outside = ~(np.abs(r) < self.limit)  # (also infinite and NaN readings)
                 if self.arc is not None:
                     outside |= in_arc(r, self.arc, self.period)
             else:

@@ -24,11 +24,19 @@ __all__ = [
 _SCRIPT = Path(sys.executable).with_name("cascal")
 
 
-def run_cascal(*args: object, timeout: float = 300) -> subprocess.CompletedProcess:
-    """Run the installed ``cascal`` script (or ``python -m cascal.cli``) and capture it."""
+def run_cascal(
+    *args: object, timeout: float = 300, stdin: str | None = None
+) -> subprocess.CompletedProcess:
+    """Run the installed ``cascal`` script (or ``python -m cascal.cli``) and capture it;
+    ``stdin``: text for its standard input."""
     cmd = [str(_SCRIPT)] if _SCRIPT.exists() else [sys.executable, "-m", "cascal.cli"]
     return subprocess.run(
-        [*cmd, *map(str, args)], capture_output=True, text=True, timeout=timeout, check=False
+        [*cmd, *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+        input=stdin,
     )
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import re
 
 import numpy as np
@@ -29,6 +31,17 @@ def test_header_and_csv_hold_the_library_table(linear_model, tmp_path):
     assert "int axis_1_correct(double reading, double *corrected)" in text  # name from file
     assert f"#define axis_1_N {table.n}" in text and linear_model.name in text
     assert repr(float(table.correction[7])) in text and f"{table.error:.3g}" in text
+    # a review's case: the header named the content checksum inside the model file as "the
+    # model file's checksum", which neither sha256sum nor cascal info showed
+    digest = hashlib.sha256(linear_model.read_bytes()).hexdigest()
+    content = json.loads(linear_model.read_text())["checksum"]["value"]
+    assert f" * {digest};\n" in text and f" * {content}.\n" in text
+    info = run_cascal("info", linear_model).stdout
+    assert digest in info and content in info
+    model_text = linear_model.read_text()
+    piped = run_cascal("export", "/dev/stdin", "-o", "-", "--format", "h", stdin=model_text)
+    assert piped.returncode == 0, piped.stderr
+    assert "read from a pipe" in piped.stdout and digest not in piped.stdout
     res = run_cascal("export", linear_model, "-o", tmp_path / "t.h", "--tolerance", "1e-4")
     assert res.returncode == 0, res.stderr
     loose = re.search(r"#define t_N (\d+)\n", (tmp_path / "t.h").read_text())

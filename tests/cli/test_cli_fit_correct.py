@@ -88,6 +88,10 @@ def test_lut_leaves_u_empty_and_says_so(linear_files, tmp_path):
     rows = out.read_text().splitlines()
     assert rows[0] == "reading,corrected,u,U,out_of_range"
     assert all(r.split(",")[2:4] == ["", ""] for r in rows[1:])
+    # a review's case: export's errors about the model did not name it
+    res = run_cascal("export", model, "-o", tmp_path / "lut.h")
+    assert res.returncode == 2 and f"error: {model}: a lookup-table (lut) model" in res.stderr
+    assert not (tmp_path / "lut.h").exists()
 
 
 def test_homoscedastic_u_is_named_as_too_small(linear_files, tmp_path):
@@ -99,7 +103,10 @@ def test_homoscedastic_u_is_named_as_too_small(linear_files, tmp_path):
         fit = run_cascal("fit", *files, "-o", model, "--method", method, "--restarts", "2")
         cor = run_cascal("correct", model, readings, "-o", out)
         assert fit.returncode == 0 and cor.returncode == 0, (fit.stderr, cor.stderr)
-        for res, cmd in ((fit, "fit"), (cor, "correct")):
+        # export writes the same u to a CSV table's u column (a review's case: in silence)
+        exp = run_cascal("export", model, "-o", tmp_path / f"{method}_table.csv")
+        assert exp.returncode == 0, exp.stderr
+        for res, cmd in ((fit, "fit"), (cor, "correct"), (exp, "export")):
             named = f"cascal {cmd}: warning: u of --method homoscedastic leaves" in res.stderr
             assert named == (method == "homoscedastic"), res.stderr
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import shutil
 
 import numpy as np
@@ -19,6 +21,10 @@ def test_info_prints_what_the_model_holds(linear_model):
     lines = res.stdout.splitlines()
     model = load_model(linear_model)
     assert lines[0] == f"{linear_model}: cascal model file, schema 1, checksum verified"
+    digest = hashlib.sha256(linear_model.read_bytes()).hexdigest()  # as sha256sum prints it
+    content = json.loads(linear_model.read_text())["checksum"]["value"]
+    assert lines[1] == f"SHA-256 of the file {digest}; content checksum (sha256) {content}"
+    lines.pop(1)
     assert f"Fitted {model.created} with cascal {model.cascal_version} (seed 0, 5 " in lines[1]
     assert lines[2] == "Method bayes, kernel se, unit m, 2 stages"
     for k, gp in enumerate(model.fitted.models):

@@ -53,40 +53,53 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
     p = c_identifier(name)
     safe = [line.replace("*/", "* /").replace("/*", "/ *") for line in about]
     intro = "\n".join(f" * {line}".rstrip() for line in safe)
+    # Quiet comparisons (isless, isgreaterequal, ...) and isfinite where a reading may be
+    # NaN or infinite: an ordered comparison with NaN, or fmod of an infinity, would raise
+    # the invalid-operation exception, which a controller may trap.
     if table.period is not None:
+        limit = "HUGE_VAL" if table.limit == float("inf") else repr(table.limit)
         reduce = (
-            f"    double t = fmod(reading - {p}_LO, {p}_PERIOD);\n"
-            f"    int status = isnan(t) ? 1 : 0; /* an infinite or NaN reading */\n"
-            f"    if (t < 0.0) t += {p}_PERIOD;\n"
-            f"    t /= {p}_STEP;\n"
-            f"    if (!(t >= 0.0)) t = 0.0;\n"
-            f"    else if (t > {p}_N - 1) t = {p}_N - 1;\n"
+            f"    double t = 0.0;\n"
+            f"    /* infinite, NaN, or so large that a double holds it less finely than u */\n"
+            f"    int status = isless(fabs(reading), {p}_LIMIT) ? 0 : 1;\n"
+            f"    if (isfinite(reading)) {{\n"
+            f"        t = fmod(reading - {p}_LO, {p}_PERIOD);\n"
+            f"        if (t < 0.0) t += {p}_PERIOD;\n"
+            f"        t /= {p}_STEP;\n"
+            f"        if (t > {p}_N - 1) t = {p}_N - 1;\n"
         )
-        extra = f"static const double {p}_PERIOD = {table.period!r};\n"
-        include = "#include <math.h> /* fmod: link with -lm */\n\n"
+        extra = (
+            f"static const double {p}_PERIOD = {table.period!r};\n"
+            f"static const double {p}_LIMIT = {limit};\n"
+        )
         if table.arc is not None:  # the part of the turn the device readings left out
             reduce += (
-                f"    double a = fmod(reading - {p}_ARC_START, {p}_PERIOD);\n"
-                f"    if (a < 0.0) a += {p}_PERIOD;\n"
-                f"    if (a > 0.0 && a < {p}_ARC_WIDTH) status = 1; /* never measured */\n"
+                f"        double a = fmod(reading - {p}_ARC_START, {p}_PERIOD);\n"
+                f"        if (a < 0.0) a += {p}_PERIOD;\n"
+                f"        if (a > 0.0 && a < {p}_ARC_WIDTH) status = 1; /* never measured */\n"
             )
             extra += (
                 f"static const double {p}_ARC_START = {table.arc[0]!r};\n"
                 f"static const double {p}_ARC_WIDTH = {table.arc[1]!r};\n"
             )
+        reduce += "    }\n"
     else:
         reduce = (
             f"    double t = (reading - {p}_LO) / {p}_STEP;\n"
-            f"    int status = reading >= {p}_LO && reading <= {p}_HI ? 0 : 1; /* or NaN */\n"
-            f"    if (!(t >= 0.0)) t = 0.0;\n"
+            f"    int status = islessequal({p}_LO, reading) && islessequal(reading, {p}_HI)"
+            " ? 0 : 1;\n"
+            f"    if (!isgreaterequal(t, 0.0)) t = 0.0; /* below the range, or NaN */\n"
             f"    else if (t > {p}_N - 1) t = {p}_N - 1;\n"
         )
-        extra, include = f"static const double {p}_HI = {table.hi!r};\n", ""
+        extra = f"static const double {p}_HI = {table.hi!r};\n"
+    include = "#include <math.h> /* fmod, fabs and the quiet comparisons: link with -lm */\n\n"
     returns = (
-        "Returns 0, or 1 for an infinite or NaN reading."
+        "Returns 0, or 1 for an infinite or NaN reading or one from LIMIT on\n * in "
+        "magnitude (a double holds it less finely than the smallest u)."
         if table.period is not None and table.arc is None
-        else "Returns 0, or 1 for an infinite or NaN reading or one in the part of\n * the "
-        "turn the device readings left out (from ARC_START over ARC_WIDTH)."
+        else "Returns 0, or 1 for an infinite or NaN reading, one from LIMIT on\n * in "
+        "magnitude (a double holds it less finely than the smallest u) or one in the\n * "
+        "part of the turn the device readings left out (from ARC_START over ARC_WIDTH)."
         if table.period is not None
         else "Returns 0 inside the calibrated range, 1 outside\n * it or for a NaN reading "
         "(the nearest end's correction is then held)."
@@ -101,7 +114,8 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
  * target; not the x87 unit), {p}_correct gives cascal's doubles to the last bit; with
  * contraction or x87, within one rounding.
  * Infinite and NaN readings need IEEE arithmetic: not with -ffast-math or
- * -ffinite-math-only.
+ * -ffinite-math-only. They raise no floating-point exception here (quiet comparisons),
+ * so a controller that traps invalid operations gets status 1 for them, not a trap.
  */
 """
     body = f"""{include}#define {p}_N {table.n}
