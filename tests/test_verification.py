@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -172,5 +173,9 @@ def test_rotary_readings_many_turns_away_are_corrected_as_their_angle():
     assert edge.out_of_range.any() and not edge.out_of_range.all()
     far = correct(model, angle + 360.0 * 10**12)
     assert far.out_of_range.all() and np.all(far.u > 0.5 * std)
+    with warnings.catch_warnings():  # a review's case: NumPy's overflow warnings, printed
+        warnings.simplefilter("error")  # by cascal correct with their source lines
+        huge = correct(model, [1.7976931348623157e308, -1e300, 1e18])
+    assert huge.out_of_range.all() and np.all(np.isfinite(huge.corrected))
     with pytest.raises(InputError, match="readings: expected finite values, got inf"):
         correct(model, [np.inf, 5.0])

@@ -471,12 +471,14 @@ def correct(model: CalibrationModel, readings: object) -> Correction:
     r = as_positions(readings, "readings")
     lo, hi = model.calibrated_range
     device = model.fitted.device
-    if isinstance(device, FittedGP):  # (a periodic GP takes any turn as its angle)
-        corrected, u = predict_many(device, r, return_std=True)
-    else:
-        corrected, u = device(r), np.full(r.shape, np.nan)
-    if model.periodic:  # a reading too large for its correction's digits
-        out = np.spacing(np.abs(r)) > u
+    with np.errstate(over="ignore"):  # squared distances of readings near 1e308 overflow
+        if isinstance(device, FittedGP):  # (a periodic GP takes any turn as its angle)
+            corrected, u = predict_many(device, r, return_std=True)
+        else:
+            corrected, u = device(r), np.full(r.shape, np.nan)
+        if model.periodic:  # a reading too large for its correction's digits
+            out = np.spacing(np.abs(r)) > u
+    if model.periodic:
         arc = unmeasured_arc(model)
         if arc is not None:  # or in the part of the turn the device was not measured on
             out |= in_arc(r, arc_width(arc, float(model.period)), float(model.period))

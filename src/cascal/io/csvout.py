@@ -82,7 +82,8 @@ def _format_block(cols: list[np.ndarray], decimals: int) -> bytes | None:
         v = np.ma.filled(v.astype(float), np.nan)
         ok = np.isfinite(v)
         a = np.abs(v) if ok.all() else np.where(ok, np.abs(v), 0.0)
-        scaled = a * 10.0**k
+        with np.errstate(over="ignore"):  # (beyond 2^53 anyway: formatted one by one)
+            scaled = a * 10.0**k
         q = np.rint(scaled)
         if q.size and float(q.max()) >= 2.0**53:
             return None
