@@ -383,6 +383,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     from .cli_screening import SKIPPED, report_findings, report_screening, screening_lines
     from .io.atomic import write_text
     from .io.modelfile import save_model
+    from .text import turn_text
     from .workflow import fit_devices, fit_findings, fit_model, screen_stages
 
     check_output(args.output, folder=True)
@@ -461,6 +462,9 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
                 f"largest u {r.max_u:.4g}{suspect}",
                 flush=True,
             )
+            if r.arc is not None:  # (a review: a partly measured rotary device, in silence)
+                turn = turn_text(r.arc, tb.unit, float(tb.period))
+                warn("fit-devices", f"{r.device}: calibrated over {turn}")
             for line in screening_lines(r.screening, tb.unit) if r.screening else ():
                 warn("fit-devices", line)
             stage_files = [tb.sources[0].file, r.file]

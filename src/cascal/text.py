@@ -11,6 +11,7 @@ __all__ = [
     "finding_line",
     "hyperparameter_unit",
     "range_text",
+    "turn_text",
     "understates_u",
 ]
 
@@ -52,11 +53,14 @@ def arc_text(model) -> str | None:
     from .workflow import unmeasured_arc
 
     arc = unmeasured_arc(model)
-    if arc is None:
-        return None
-    (left, back), u = arc, model.unit  # measured from where the gap ends round to its start
+    return None if arc is None else turn_text(arc, model.unit, float(model.period))
+
+
+def turn_text(arc: tuple[float, float], unit: str, period: float) -> str:
+    """:func:`arc_text` of the arc ``(start, end)`` the device readings leave out."""
+    (left, back), u = arc, unit  # measured from where the gap ends round to its start
     return (
-        f"{back:.9g} to {left:.9g} {u} of the turn (period {model.period:g}; the device "
+        f"{back:.9g} to {left:.9g} {u} of the turn (period {period:g}; the device "
         f"readings leave out {left:.9g} to {back:.9g} {u}: readings there are flagged)"
     )
 

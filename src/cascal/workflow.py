@@ -800,6 +800,8 @@ class DeviceResult:
         source: The device file's provenance (its columns among it), or None.
         warnings: cascal's warnings while reading and fitting it
             (:class:`~cascal.errors.CascalWarning`), as text.
+        arc: For a periodic model, the part of the turn its readings leave out
+            (:func:`unmeasured_arc`), or None.
     """
 
     device: str
@@ -815,6 +817,7 @@ class DeviceResult:
     findings: tuple[BoundHit | StageOffset, ...] = ()
     source: Source | None = None
     warnings: tuple[str, ...] = ()
+    arc: tuple[float, float] | None = None
 
 
 def summarize_device(model: CalibrationModel) -> dict[str, object]:
@@ -996,6 +999,7 @@ def _device_fit(
         rms_correction=s["rms_correction"],  # type: ignore[arg-type]
         max_u=s["max_u"],  # type: ignore[arg-type]
         calibrated_range=model.calibrated_range,
+        arc=unmeasured_arc(model),
         points=int(data.x.size),
         screening=check,
         findings=tuple(fit_findings(model, first=len(model.fitted.models) - 1)),

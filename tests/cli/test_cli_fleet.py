@@ -369,3 +369,29 @@ def test_ctrl_c_as_the_workers_start_gives_no_traceback(fleet, tmp_path, delay):
     assert code == 130, err
     assert "Traceback" not in err and "interrupted" in err, err
     assert not [p for p in out.rglob("*") if p.name.startswith(".")]  # no temporaries
+
+
+def test_a_partly_measured_rotary_device_is_named_in_the_summary(tmp_path):
+    """A review's case: a rotary device measured from 5 to 200 degrees only was reported
+    "ok" with no word of it (``cascal fit`` names the arc its readings leave out); the
+    fleet now warns of it, and the summary's warnings column carries it."""
+    from cascal.demo import rotary_demo
+
+    testbed, device = rotary_demo(0).stages
+    tb = tmp_path / "testbed.csv"
+    write_columns(tb, dict(zip(testbed.columns, (testbed.x, testbed.y), strict=True)), decimals=12)
+    folder = tmp_path / "devices"
+    keep = (device.x > 5.0) & (device.x < 200.0)
+    for name, sel in (("full", slice(None)), ("part", keep)):
+        cols = dict(zip(device.columns, (device.x[sel], device.y[sel]), strict=True))
+        write_columns(folder / f"{name}.csv", cols, decimals=12)
+    out = tmp_path / "out"
+    res = run_cascal("fit-devices", tb, "--devices", folder, "-o", out, "--kernel", "periodic",
+                     "--period", "360", "--unit", "deg", "--restarts", "1")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    left = f"{device.x[keep].max():.9g} to {device.x[keep].min():.9g} deg"
+    assert "warning: part: calibrated over " in res.stderr and f"leave out {left}" in res.stderr
+    assert "full: calibrated over" not in res.stderr
+    with open(out / "fleet_summary.csv", newline="") as fh:
+        rows = {r["device"]: r for r in csv.DictReader(fh)}
+    assert f"leave out {left}" in rows["part"]["warnings"] and not rows["full"]["warnings"]
