@@ -378,8 +378,19 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
         ("testbed,reference\nm,m\n0.1,0.1\n0.5,0.5\n0.9,0.9\n", "a row of units under the"),
         ("testbed,reference\n\nm,m\n0.1,0.1\n0.5,0.5\n0.9,0.9\n", "row 3: expected numbers"),
         ("testbed,reference\n0.1,0.1O01\n0.5,0.5\n0.9,0.9\n", "got '0.1O01'\n"),
+        # a review's case: a column of text taken as the readings was called a units row
+        ("reading\nx\ny\nz\n", "column 'reading' holds no readings (the wrong column?)"),
+        ("testbed,reference\nA1,B1\nA2,B2\nA3,\n", "columns 'testbed', 'reference' hold no"),
     ],
-    ids=["decimal_comma", "decimal_comma_splits_cells", "units_row", "units_row_3", "typo"],
+    ids=[
+        "decimal_comma",
+        "decimal_comma_splits_cells",
+        "units_row",
+        "units_row_3",
+        "typo",
+        "text_column",
+        "text_column_of_two",
+    ],
 )
 def test_spreadsheet_habits_get_a_hint(tmp_path, text, hint):
     """A user review's cases: the message named the cell but not the likely cause."""

@@ -509,9 +509,18 @@ def _slow(
                 row=row,
             )
         if not out and all(_is_text(cells[j]) for j in idx):
+            got = ", ".join(repr(cells[j].strip()) for j in idx)
+            if not any(len(c) > max(idx) and all(_is_number(c[j]) for j in idx) for c in reader):
+                named = [j for j in idx if _is_text(cells[j])]  # (the reader ran to the end)
+                raise InputError(  # (a review: a text column taken was called a units row)
+                    f"expected numbers, got {got}, and no later row has them: column"
+                    f"{'s' * (len(named) > 1)} {', '.join(repr(header[j]) for j in named)} "
+                    f"hold{'s' * (len(named) == 1)} no readings (the wrong column?){hint}",
+                    file=name,
+                    row=row,
+                )
             raise InputError(  # no number where one is due: a second header row?
-                f"expected numbers, got {', '.join(repr(cells[j].strip()) for j in idx)}: a "
-                "row of units under the header? Delete it",
+                f"expected numbers, got {got}: a row of units under the header? Delete it",
                 file=name,
                 row=row,
             )
