@@ -510,7 +510,7 @@ def _slow(
             )
         if not out and all(_is_text(cells[j]) for j in idx):
             got = ", ".join(repr(cells[j].strip()) for j in idx)
-            if not any(len(c) > max(idx) and all(_is_number(c[j]) for j in idx) for c in reader):
+            if not any(len(c) > max(idx) and all(_is_value(c[j]) for j in idx) for c in reader):
                 named = [j for j in idx if _is_text(cells[j])]  # (the reader ran to the end)
                 raise InputError(  # (a review: a text column taken was called a units row)
                     f"expected numbers, got {got}, and no later row has them: column"
@@ -603,6 +603,11 @@ def _is_text(cell: str) -> bool:
     """A cell that is neither empty nor a number (with a decimal point or comma)."""
     s = cell.strip()
     return bool(s) and not _NUMBER.fullmatch(s) and not _DECIMAL_COMMA.fullmatch(s)
+
+
+def _is_value(cell: str) -> bool:
+    """A cell that holds a number, with a decimal point or a decimal comma."""
+    return bool(cell.strip()) and not _is_text(cell)
 
 
 def _is_number(s: str) -> bool:
