@@ -377,7 +377,10 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
         ("reading\n0,5\n0,6\n", "decimal commas? Write numbers with a decimal point"),
         ("testbed,reference\nm,m\n0.1,0.1\n0.5,0.5\n0.9,0.9\n", "a row of units under the"),
         # a review's case: a German Excel file's units row was called a column of text
-        ("testbed;reference\nmm;mm\n0,1;0,1\n0,5;0,5\n0,9;0,9\n", "a row of units under"),
+        (
+            "testbed;reference\nmm;mm\n0,1;0,1\n0,5;0,5\n0,9;0,9\n",
+            "Delete it; and the rows below write decimal commas: use a point",
+        ),
         ("testbed,reference\n\nm,m\n0.1,0.1\n0.5,0.5\n0.9,0.9\n", "row 3: expected numbers"),
         ("testbed,reference\n0.1,0.1O01\n0.5,0.5\n0.9,0.9\n", "got '0.1O01'\n"),
         # a review's case: a column of text taken as the readings was called a units row

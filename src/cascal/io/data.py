@@ -510,7 +510,11 @@ def _slow(
             )
         if not out and all(_is_text(cells[j]) for j in idx):
             got = ", ".join(repr(cells[j].strip()) for j in idx)
-            if not any(len(c) > max(idx) and all(_is_value(c[j]) for j in idx) for c in reader):
+            later = next(
+                (c for c in reader if len(c) > max(idx) and all(_is_value(c[j]) for j in idx)),
+                None,
+            )
+            if later is None:
                 named = [j for j in idx if _is_text(cells[j])]  # (the reader ran to the end)
                 raise InputError(  # (a review: a text column taken was called a units row)
                     f"expected numbers, got {got}, and no later row has them: column"
@@ -519,8 +523,10 @@ def _slow(
                     file=name,
                     row=row,
                 )
+            comma = any(_DECIMAL_COMMA.fullmatch(later[j].strip()) for j in idx)
             raise InputError(  # no number where one is due: a second header row?
-                f"expected numbers, got {got}: a row of units under the header? Delete it",
+                f"expected numbers, got {got}: a row of units under the header? Delete it"
+                + ("; and the rows below write decimal commas: use a point" if comma else ""),
                 file=name,
                 row=row,
             )
