@@ -153,7 +153,7 @@ def add_plan_parser(sub: argparse._SubParsersAction) -> None:
         help="test-bed readings the reference can reach; repeat for several intervals, or "
         "give a single reading; --reach=-0.04:0.3 or --reach -0.04:0.3 for a negative LO "
         "(default: the stretches the reference points cover, leaving out gaps wider than 3 "
-        "median spacings and a tenth of the span)",
+        "median spacings, and a tenth of the span or 3 times the spacings beside them)",
     )
     p.add_argument(
         "--where",

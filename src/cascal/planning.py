@@ -52,8 +52,9 @@ __all__ = [
 
 #: A spacing this many times the median spacing of stage 0's readings counts as a gap.
 GAP_FACTOR = 3.0
-#: Stretches without reference points narrower than this fraction of the span are not
-#: gaps for a plan's default reach (the reference passed them).
+#: Stretches without reference points narrower than this fraction of the span are gaps for
+#: a plan's default reach only where they are also over GAP_FACTOR times the spacings on
+#: either side (a sparse stretch is passed by the reference, not out of its reach).
 REACH_GAP = 0.1
 #: Candidate test-bed readings over the reachable intervals, about.
 CANDIDATES = 1001
@@ -330,12 +331,28 @@ def find_gaps(
 
 def covered(x: np.ndarray, period: float | None = None) -> list[tuple[float, float]]:
     """Stretches of readings ``x`` (n,) without their gaps: where the reference has been.
-    A gap is wider than :data:`GAP_FACTOR` median spacings and :data:`REACH_GAP` of the
-    span (one turn, for a ``period``); without a gap across the seam of a turn, the last
-    stretch runs on across it."""
+    A gap is wider than :data:`GAP_FACTOR` median spacings (as the report hatches), and
+    than :data:`REACH_GAP` of the span (one turn, for a ``period``) or :data:`GAP_FACTOR`
+    times the spacing on either side of it; without a gap across the seam of a turn, the
+    last stretch runs on across it."""
     xs = np.unique(x)
     span = float(xs[-1] - xs[0]) if period is None else float(period)
-    gaps = [(a, b) for a, b in find_gaps(xs, period=period) if b - a > REACH_GAP * span]
+    d = np.diff(xs)
+
+    def stands_out(a: float, b: float) -> bool:  # against its neighbouring spacings
+        i = int(np.searchsorted(xs, a))  # the gap is d[i]; the seam's comes after d[-1]
+        if i == d.size:
+            before, after = d[-1], d[0]
+        else:
+            before = d[i - 1] if i > 0 else 0.0
+            after = d[i + 1] if i + 1 < d.size else 0.0
+        return b - a > GAP_FACTOR * float(max(before, after))
+
+    gaps = [
+        (a, b)
+        for a, b in find_gaps(xs, period=period)
+        if b - a > REACH_GAP * span or stands_out(a, b)
+    ]
     out, start, end = [], float(xs[0]), float(xs[-1])
     for a, b in gaps:
         if a == end:  # the seam's

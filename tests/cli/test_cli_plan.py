@@ -65,7 +65,8 @@ def test_reach_limits_the_proposals(linear_model, tmp_path):
 
 def test_negative_readings_and_covered_stretches(linear_model, tmp_path):
     """``--reach -0.04:0.3`` works as typed; the default reach leaves out gaps wider than
-    3 median spacings and a tenth of the span, and runs across a periodic seam."""
+    3 median spacings, and a tenth of the span or 3 times the spacings beside them, and runs
+    across a periodic seam."""
     assert join_negative(["plan", "m", "--reach", "-1:2", "--where", "-3:-1", "-n", "2"]) == [
         "plan", "m", "--reach=-1:2", "--where=-3:-1", "-n", "2",
     ]  # fmt: skip
@@ -85,6 +86,11 @@ def test_negative_readings_and_covered_stretches(linear_model, tmp_path):
     assert covered(full, 360.0) == [(0.0, 360.0)]
     seam = np.arange(25.0, 340.0, 5.0)
     assert covered(seam, 360.0) == [(25.0, 335.0)]
+    # a review's case: set points every 5 mm with 25 mm the interferometer could not reach
+    # (under a tenth of the span): the report hatched it, and the plan proposed points there
+    travel = np.r_[np.arange(20.0, 141.0, 5.0), np.arange(165.0, 286.0, 5.0)]
+    assert covered(travel, None) == [(20.0, 140.0), (165.0, 285.0)]
+    assert covered(np.r_[travel, 152.0], None) == [(20.0, 285.0)]  # one point: two gaps
 
 
 def test_periodic_proposals_lie_on_one_turn(tmp_path):
