@@ -415,7 +415,11 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
                     f"({other}); give another folder"
                 )
     skip = exclusions(args.exclude, [args.testbed, *files])
-    (testbed,) = _read_stages([args.testbed], args, skip[:1])
+    (tb_x, dev_x), (tb_y, dev_y) = (
+        _fleet_columns(args.x_column, "--x-column"),
+        _fleet_columns(args.y_column, "--y-column"),
+    )
+    (testbed,) = _read_stages([args.testbed], args, skip[:1], columns=(tb_x, tb_y))
     tb = fit_model([testbed], **_fit_kwargs(args))
     tb_model = save_model(tb_path, tb)
     print(f"Test bed fitted once: {tb_model}")
@@ -428,8 +432,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         report_screening("fit-devices", checks, tb.unit, " of the test bed")
     options = dict(
         _fit_kwargs(args),
-        x_column=_one(args.x_column),
-        y_column=_one(args.y_column),
+        x_column=dev_x,
+        y_column=dev_y,
         screening_level=level,
         exclude={str(f): sorted(e) for f, e in zip(files, skip[1:], strict=True) if e},
     )
@@ -528,15 +532,21 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _read_stages(
-    paths: Sequence[str], args: argparse.Namespace, skip: list[frozenset[int]] | None = None
+    paths: Sequence[str],
+    args: argparse.Namespace,
+    skip: list[frozenset[int]] | None = None,
+    columns: tuple[str | None, str | None] | None = None,
 ) -> list:
-    """The stage files, with the options' columns, period and excluded rows (``skip``, per
-    file; default from ``--exclude``)."""
+    """The stage files, with the options' columns (or ``columns``, x and y of every file),
+    period and excluded rows (``skip``, per file; default from ``--exclude``)."""
     from .io.data import read_stage
 
     n = len(paths)
-    xs = _per_file(args.x_column, n, "--x-column")
-    ys = _per_file(args.y_column, n, "--y-column")
+    if columns is None:
+        xs = _per_file(args.x_column, n, "--x-column")
+        ys = _per_file(args.y_column, n, "--y-column")
+    else:
+        xs, ys = [columns[0]] * n, [columns[1]] * n
     skip = exclusions(args.exclude, paths) if skip is None else skip
     period = args.period if args.kernel == "periodic" else None
     if args.kernel == "periodic" and period is None:
@@ -566,10 +576,17 @@ def _per_file(values: list[str] | None, n: int, option: str) -> list[str | None]
     return list(values)
 
 
-def _one(values: list[str] | None) -> str | None:
-    if values and len(values) > 1:
-        raise InputError("fit-devices: give --x-column and --y-column once, for all device files")
-    return values[0] if values else None
+def _fleet_columns(values: list[str] | None, option: str) -> tuple[str | None, str | None]:
+    """A fleet's column of the test bed and of the devices: ``option`` given once names
+    both, twice the test bed's, then the devices'."""
+    if not values:
+        return None, None
+    if len(values) > 2:
+        raise InputError(
+            f"{option}: give it once (the test bed and every device) or twice (the test "
+            f"bed's, then the devices'), got {len(values)}"
+        )
+    return values[0], values[-1]
 
 
 def _fit_kwargs(args: argparse.Namespace) -> dict[str, object]:
@@ -741,8 +758,8 @@ def warn(command: str, message: str) -> None:
         _COLLECTORS[-1].append(message)
 
 
-def _fit_options(p: argparse.ArgumentParser) -> None:
-    """Options shared by ``fit`` and ``fit-devices``."""
+def _fit_options(p: argparse.ArgumentParser, fleet: bool = False) -> None:
+    """Options shared by ``fit`` and ``fit-devices`` (``fleet``)."""
     p.add_argument(
         "--method",
         choices=("bayes", "homoscedastic", "lut"),
@@ -776,13 +793,15 @@ def _fit_options(p: argparse.ArgumentParser) -> None:
         "--x-column",
         action="append",
         metavar="NAME",
-        help="column of the sensor being calibrated (once for all files, or once per file)",
+        help="column of the sensor being calibrated (once for all files, or "
+        + ("twice: the test bed's, then the devices')" if fleet else "once per file)"),
     )
     p.add_argument(
         "--y-column",
         action="append",
         metavar="NAME",
-        help="column of the more accurate sensor (once, or once per file)",
+        help="column of the more accurate sensor (once, or "
+        + ("twice: the test bed's, then the devices')" if fleet else "once per file)"),
     )
     p.add_argument(
         "--seed", type=seed, default=0, help="seed of the optimiser's starts (default 0)"
@@ -995,7 +1014,7 @@ def _parser() -> argparse.ArgumentParser:
     fd.add_argument(
         "--jobs", type=positive_int, default=None, help="worker processes (default: CPU count)"
     )
-    _fit_options(fd)
+    _fit_options(fd, fleet=True)
     fd.set_defaults(func=_cmd_fit_devices)
 
     rep = _model_command(

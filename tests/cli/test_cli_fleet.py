@@ -395,3 +395,30 @@ def test_a_partly_measured_rotary_device_is_named_in_the_summary(tmp_path):
     with open(out / "fleet_summary.csv", newline="") as fh:
         rows = {r["device"]: r for r in csv.DictReader(fh)}
     assert f"leave out {left}" in rows["part"]["warnings"] and not rows["full"]["warnings"]
+
+
+def test_the_test_bed_and_the_devices_name_their_columns_apart(tmp_path):
+    """A user review's case: a test-bed log with its own column names (and time and
+    temperature columns) beside device files of another station could not be fitted:
+    ``--x-column`` was taken once, for every file. Given twice, it names the test bed's
+    column, then the devices'; three times is refused."""
+    testbed, devices = fleet_demo(0, n_devices=2)
+    tb = tmp_path / "testbed_log.csv"
+    cols = {"time_s": testbed.x * 0.0, "stage_mm": testbed.x, "interferometer_mm": testbed.y}
+    write_columns(tb, cols, decimals=14)
+    folder = tmp_path / "devices"
+    for d in devices:
+        write_columns(folder / d.file, dict(zip(d.columns, (d.x, d.y), strict=True)), decimals=14)
+    xd, yd = devices[0].columns
+    out = tmp_path / "out"
+    args = ["--x-column", "stage_mm", "--x-column", xd, "--y-column", "interferometer_mm",
+            "--y-column", yd, "--restarts", "1"]  # fmt: skip
+    res = run_cascal("fit-devices", tb, "--devices", folder, "-o", out, *args)
+    assert res.returncode == 0, res.stderr
+    assert "2 of 2 devices calibrated" in res.stdout
+    model = json.loads((out / "devices" / f"{devices[0].file.rsplit('.', 1)[0]}.json").read_text())
+    assert "stage_mm" in json.dumps(model) and xd in json.dumps(model)
+    res = run_cascal("fit-devices", tb, "--devices", folder, "-o", tmp_path / "o2",
+                     *args, "--x-column", "third")  # fmt: skip
+    assert res.returncode == 2 and "give it once (the test bed and every device)" in res.stderr
+    assert "Traceback" not in res.stderr and not (tmp_path / "o2").exists()
