@@ -84,3 +84,29 @@ def test_vector_figures_carry_no_date_and_fixed_ids(tmp_path):
         assert (tmp_path / f"f1.{fmt}").read_bytes() == (tmp_path / f"f2.{fmt}").read_bytes()
     assert b"<dc:date>" not in (tmp_path / "f1.svg").read_bytes()
     assert b"CreationDate" not in (tmp_path / "f1.pdf").read_bytes()
+
+
+def _left_edge_blank(fig, dpi: int = 130) -> bool:
+    """Whether the figure, written as PNG at ``dpi`` (as the commands write it), has its
+    three leftmost pixel columns blank: no label cut off at the edge."""
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    im = Image.open(io.BytesIO(buf.getvalue())).convert("L")
+    return min(im.getpixel((x, y)) for x in range(3) for y in range(im.size[1])) == 255
+
+
+def test_no_axis_label_is_cut_off_at_the_figure_edge():
+    """A review's case: a recalibration's change of +-0.02 mm (tick labels of three
+    decimals) drew its y label half outside the PNG: the legend below the axes, placed as
+    part of them, kept the layout from settling. The legends lie outside the axes now."""
+    r = np.linspace(25.0, 275.0, 400)
+    d = 0.02 * np.sin((r - 25.0) / 40.0)
+    u = np.full(r.size, 0.0012)
+    c = compare(r, r, u, r + d, u)
+    assert _left_edge_blank(plot_change(c, unit="mm", xunit="mm", names=("a.json", "b.json")))
+    v = verify(r, r + d, r + 0.9 * d, u, u_reading=0.0)
+    assert _left_edge_blank(plot_verification(v, unit="mm", xunit="mm"))

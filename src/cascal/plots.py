@@ -355,7 +355,7 @@ def plot_verification(
     ax.set_xlabel(f"device reading [{xunit}]")
     ax.set_ylabel(f"corrected - reference [{unit}]")
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=5, frameon=False)
+    fig.legend(fontsize=7, loc="outside lower center", ncol=5, frameon=False)
     return fig
 
 
@@ -401,7 +401,7 @@ def plot_change(
     ax.set_xlabel(f"device reading [{xunit}]")
     ax.set_ylabel(f"change of correction [{unit}]")
     ax.set_title(f"{names[1]} - {names[0]}\n{title}", fontsize=9)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=3, frameon=False)
+    fig.legend(fontsize=7, loc="outside lower center", ncol=3, frameon=False)
     return fig
 
 
