@@ -386,6 +386,14 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
         # a review's case: a column of text taken as the readings was called a units row
         ("reading\nx\ny\nz\n", "column 'reading' holds no readings (the wrong column?)"),
         ("testbed,reference\nA1,B1\nA2,B2\nA3,\n", "columns 'testbed', 'reference' hold no"),
+        # a user review's cases: lines above the header, from Excel and from instruments
+        ("sep=;\ntestbed;reference\n0,1;0,1\n0,5;0,5\n", "row 1: 'sep=;' is a spreadsheet's"),
+        ("# run 7\ntestbed,reference\n0.1,0.1\n0.5,0.5\n", "the header looks like row 2"),
+        (
+            "LabVIEW Measurement\t\nWriter_Version\t2\n***End_of_Header***\t\n\n"
+            "X_Value\ttestbed\treference\n0\t0.1\t0.1\n1\t0.5\t0.5\n2\t0.9\t0.9\n",
+            "header looks like row 5 ('X_Value\\ttestbed\\treference'): delete the lines above",
+        ),
     ],
     ids=[
         "decimal_comma",
@@ -396,6 +404,9 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
         "typo",
         "text_column",
         "text_column_of_two",
+        "excel_separator_line",
+        "comment_line",
+        "instrument_header_block",
     ],
 )
 def test_spreadsheet_habits_get_a_hint(tmp_path, text, hint):

@@ -162,6 +162,7 @@ def read_table(
         ) from None
     text = text.replace("\r\n", "\n").replace("\r", "\n")  # CRLF, and CR alone (old Macs)
     first = text.split("\n", 1)[0]
+    _check_preamble(text, first, len(columns), name)
     delim = _delimiter(text)
     header = _header(first, delim, name)
     idx, unnamed = _pick(header, columns, name, hint)
@@ -321,6 +322,54 @@ def check_units(x: np.ndarray, y: np.ndarray, columns: tuple[str, ...], name: st
 def read_readings(path: str | os.PathLike, *, column: str | None = None) -> Table:
     """Read device readings to correct: a one-column file, or the column named ``column``."""
     return read_table(path, (column,), hint="; choose one by name with --column")
+
+
+def _check_preamble(text: str, first: str, width: int, name: str) -> None:
+    """Refuse lines above the header that a spreadsheet or an instrument writes: Excel's
+    ``sep=;`` line, or comments and a header block whose first line is one cell where
+    ``width`` columns are wanted (a later line of as many cells is named)."""
+    line = first.strip()
+    if re.fullmatch(r'"?sep=.?"?,*;*', line, flags=re.IGNORECASE):
+        raise InputError(
+            f"{line!r} is a spreadsheet's separator line, not the header: delete it (the "
+            "header row is the next one)",
+            file=name,
+            row=1,
+        )
+    if width < 2 or _widest(first) >= width:
+        return
+    lines = text[:65536].split("\n")[:400]
+    for k, later in enumerate(lines[1:], start=2):  # the first row of numbers only ...
+        cells = [c for c in _split(later) if c.strip()]
+        if len(cells) >= width and all(_is_value(c) for c in cells):
+            # ... and the header: the nearest row above it of as many cells
+            j = next((j for j in range(k - 1, 1, -1) if _widest(lines[j - 1]) >= width), None)
+            if j is not None:
+                raise InputError(
+                    f"{line[:60]!r} is one cell where a header of {width} columns is due; "
+                    f"the header looks like row {j} ({lines[j - 1].strip()[:60]!r}): delete "
+                    "the lines above it (comments, or an instrument's header block)",
+                    file=name,
+                    row=1,
+                )
+            return
+
+
+def _split(line: str) -> list[str]:
+    """The cells of ``line`` by the separator (comma, semicolon or tab) that gives most."""
+    best: list[str] = []
+    for d in ",;\t":
+        try:
+            cells = next(csv.reader([line], delimiter=d), [])
+        except csv.Error:
+            continue
+        best = cells if len(cells) > len(best) else best
+    return best
+
+
+def _widest(line: str) -> int:
+    """Cells of ``line`` that are not empty, by the separator that gives most cells."""
+    return sum(1 for c in _split(line) if c.strip())
 
 
 def _delimiter(text: str) -> str:
