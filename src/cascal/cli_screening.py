@@ -3,11 +3,9 @@
 
 from __future__ import annotations
 
-import shlex
-
 from .cli import rows_text
 from .screening import LEVEL, min_points
-from .text import finding_line
+from .text import exclude_spec, finding_line
 from .workflow import StageScreening
 
 __all__ = [
@@ -25,11 +23,6 @@ FEW_POINTS = 20
 
 #: What ``fit`` and ``fit-devices`` print in place of the summary with --no-screening.
 SKIPPED = "Outlier screening: skipped (--no-screening)"
-
-
-def _quote(file: str, rows) -> str:
-    """``FILE:ROWS`` of ``--exclude``, quoted for a shell where it needs it."""
-    return shlex.quote(f"{file}:{','.join(str(int(r)) for r in rows)}")
 
 
 def screening_lines(check: StageScreening, unit: str) -> list[str]:
@@ -63,7 +56,7 @@ def screening_lines(check: StageScreening, unit: str) -> list[str]:
                 f"{file} row {far}: {yn} {float(data.raw_y[s.farthest]):.9g} is the farthest "
                 f"of the {s.members.size} readings at {xn} {s.reading:.9g} ({rows_text(rows)}), "
                 f"which scatter {s.ratio:.1f} times as much as the other positions' repeats "
-                f"(p = {s.p:.2g}); check that measurement (--exclude {_quote(file, [far])} "
+                f"(p = {s.p:.2g}); check that measurement (--exclude {exclude_spec(file, [far])} "
                 "leaves it out)"
             )
     fit = check.fit
@@ -75,7 +68,7 @@ def screening_lines(check: StageScreening, unit: str) -> list[str]:
         lines.append(
             f"{file}: without {which} its learned noise would be {fit.noise_std_without:.3g} "
             f"{unit} instead of {fit.noise_std:.3g}; re-measure {them}, or leave {them} out "
-            f"with --exclude {_quote(file, rows)}, and fit again"
+            f"with --exclude {exclude_spec(file, rows)}, and fit again"
         )
     if fit and fit.capped:
         lines.append(

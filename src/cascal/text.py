@@ -8,6 +8,7 @@ from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
 __all__ = [
     "HOMOSCEDASTIC_U",
     "caution_lines",
+    "exclude_spec",
     "finding_line",
     "hyperparameter_unit",
     "range_text",
@@ -22,6 +23,13 @@ HOMOSCEDASTIC_U = (
     "Alternative 1): in simulated cascades U = 2u covered 66 % of the errors, not 95 %; "
     "for u, fit with --method bayes"
 )
+
+
+def exclude_spec(file: str, rows) -> str:
+    """``FILE:ROWS`` of ``--exclude``, quoted for a shell where it needs it."""
+    import shlex
+
+    return shlex.quote(f"{file}:{','.join(str(int(r)) for r in rows)}")
 
 
 def range_text(lo: float, hi: float, digits: int = 9) -> str:

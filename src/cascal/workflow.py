@@ -31,7 +31,7 @@ from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
 from .screening import LEVEL, Screening, Spread, repeats_screening, screen
 from .tabulate import predict_many
-from .text import range_text
+from .text import exclude_spec, range_text
 from .validation import as_positions, check_count
 from .verification import COVERAGE_FACTOR, Comparison, Verification, compare, verify
 
@@ -390,7 +390,12 @@ def _check_inside(
         i = out[np.argmin(stage.rows[out])]
         y, span = float(stage.y[i]), hi - lo
         far = float(np.max(beyond(stage.y[out], lo, hi)))
-        advice = "the reference never confirmed it: measure the stage above over this range too"
+        rows = np.concatenate([stage.point_rows(int(j)) for j in out])
+        spec = exclude_spec(Path(stage.source.file).name, np.sort(rows))
+        advice = (
+            "the reference never confirmed it: measure the stage above over this range too, "
+            f"or leave {'it' if out.size == 1 else 'them'} out (--exclude {spec})"
+        )
         if span > 0 and (far > 10 * span or 2 * out.size > stage.y.size):
             advice = (
                 f"{out.size} of {stage.y.size} points lie outside, up to {far:.4g} beyond it: "

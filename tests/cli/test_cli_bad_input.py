@@ -100,10 +100,13 @@ def _cases(tmp: Path, model: Path, files: list[Path], readings: Path) -> dict[st
     top = max(float(r.split(",")[1]) for r in lines[1:])
     last = float(lines[-1].split(",")[0])
     outside = tmp / "outside.csv"
-    outside.write_text("\n".join([*lines, f"{last + 0.01!r},{top + 0.5!r}"]) + "\n")
+    beyond = [f"{last + 0.01!r},{top + 0.5!r}", f"{last + 0.02!r},{top + 0.6!r}"]
+    outside.write_text("\n".join([*lines, *beyond]) + "\n")
     dest = tmp / "outside.json"
     row = f"row {len(lines) + 1}"
     words = [row, "column 'testbed'", "outside the range", "calibrated by the stage above"]
+    # every such row, ready to leave out (a user review: found one run at a time)
+    words.append(f"or leave them out (--exclude outside.csv:{len(lines) + 1},{len(lines) + 2})")
     out["device_outside_testbed"] = (
         ["fit", files[0], outside, "-o", dest],
         dest,
