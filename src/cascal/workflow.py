@@ -31,7 +31,7 @@ from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
 from .screening import LEVEL, Screening, Spread, repeats_screening, screen
 from .tabulate import predict_many
-from .text import exclude_spec, range_text
+from .text import exclude_spec, range_text, turn_text
 from .validation import as_positions, check_count
 from .verification import COVERAGE_FACTOR, Comparison, Verification, compare, verify
 
@@ -773,13 +773,22 @@ def plan_measurements(
     upper = model.data[1].y
     if model.method == "bayes":
         x1 = model.data[1].x
-        grid = np.linspace(float(x1.min()), float(x1.max()), _PLAN_TARGET)
+        arc = unmeasured_arc(model) if period is not None else None
+        if period is None:
+            grid = np.linspace(float(x1.min()), float(x1.max()), _PLAN_TARGET)
+            span1 = f"range {range_text(float(grid[0]), float(grid[-1]))} {unit}"
+        elif arc is None:
+            grid = np.linspace(0.0, period, _PLAN_TARGET, endpoint=False)
+            span1 = f"full turn (period {period:g})"
+        else:  # the measured part of the turn, from where the gap ends round to its start
+            width = (arc[0] - arc[1]) % period
+            grid = np.mod(arc[1] + np.linspace(0.0, width, _PLAN_TARGET), period)
+            span1 = turn_text(arc, unit, period)
         target = LowerStage(lower, upper, grid)  # type: ignore[arg-type]
         plan = plan_reference(
             testbed, candidates, k, lower=target, noise_variance=s2, progress=progress
         )
-        span1 = f"{range_text(float(grid[0]), float(grid[-1]))} {unit}"
-        what = f"stage 1 ({name})'s uncertainty over its calibrated range {span1}"
+        what = f"stage 1 ({name})'s uncertainty over its calibrated {span1}"
         return MeasurementPlan(plan, intervals, candidates.size, what, name)
     plan = plan_reference(testbed, candidates, k, where=upper, noise_variance=s2, progress=progress)
     what = f"stage 0's uncertainty at the test-bed readings of stage 1 ({name})"

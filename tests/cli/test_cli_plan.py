@@ -113,6 +113,35 @@ def test_periodic_proposals_lie_on_one_turn(tmp_path):
     path = save_model(tmp_path / "rotary.json", model)  # a reach turns away: no unit warning
     res = run_cascal("plan", path, "-n", "1", "--reach=720:740")
     assert res.returncode == 0 and "another unit" not in res.stderr, res.stderr
+    assert mp.target.endswith("over its calibrated full turn (period 360)")
+
+
+def test_a_partly_measured_rotary_device_is_planned_for_over_its_measured_arc(monkeypatch):
+    """A user review's case: the plan of a rotary device whose readings leave part of the
+    turn out lowered u over the readings' smallest to largest angle, which holds the arc
+    left out (u large there, and flagged) and leaves out the stretch across 0. It now
+    plans over the measured arc and names it as fit and info do."""
+    from dataclasses import replace
+
+    from cascal import workflow
+
+    case = rotary_demo(0)
+    dev = case.stages[1]
+    keep = (dev.x < 150.0) | (dev.x > 250.0)  # a swivel that never turns through 200
+    part = replace(case, stages=(case.stages[0], replace(dev, x=dev.x[keep], y=dev.y[keep])))
+    model = fit_model(demo_stages(part), kernel="periodic", period=360.0, unit="deg",
+                      n_restarts=1)  # fmt: skip
+    targets = []
+    real = workflow.LowerStage
+    monkeypatch.setattr(workflow, "LowerStage", lambda *a: targets.append(real(*a)) or targets[-1])
+    mp = plan_measurements(model, 2)
+    start = float(dev.x[keep & (dev.x < 150.0)].max())  # the arc left out: start to end
+    end = float(dev.x[keep & (dev.x > 250.0)].min())
+    assert f"{end:.9g} to {start:.9g} deg of the turn" in mp.target and "leave out" in mp.target
+    (target,) = targets
+    w = target.where
+    assert not np.any((w > start + 1e-9) & (w < end - 1e-9))  # none in the arc left out
+    assert np.any(w < 10.0) and np.any(w > 350.0)  # and the stretch across 0 is planned for
 
 
 def test_outputs_never_overwrite_inputs(linear_files, linear_model, tmp_path):
