@@ -110,3 +110,23 @@ def test_no_axis_label_is_cut_off_at_the_figure_edge():
     assert _left_edge_blank(plot_change(c, unit="mm", xunit="mm", names=("a.json", "b.json")))
     v = verify(r, r + d, r + 0.9 * d, u, u_reading=0.0)
     assert _left_edge_blank(plot_verification(v, unit="mm", xunit="mm"))
+
+
+def test_plan_order_labels_do_not_run_into_each_other():
+    """A user review's case: proposals 1, 2, 3 at 155.4 mm and 5 at 167.9 mm on a 265 mm
+    axis were labelled on one line, reading "1, 2, 35". A label that reaches the next one's
+    place now puts that one a line higher."""
+    from cascal import fit_gp
+    from cascal.planning import Plan
+    from cascal.plots import plot_plan
+
+    x = np.linspace(20.0, 285.0, 40)
+    gp = fit_gp(x, x + 1e-3 * np.sin(x / 30.0), n_restarts=1)
+    pos = np.array([155.415, 155.415, 155.945, 40.935, 167.87])
+    where = np.linspace(20.0, 285.0, 5)
+    plan = Plan(pos, np.ones(6), np.ones(6), 1e-8, where, np.ones(5), np.ones(5))
+    ax = plot_plan(plan, gp, [(20.0, 285.0)], unit="mm", xunit="mm").axes[0]
+    labels = {t.get_text(): t.xy for t in ax.texts}
+    assert set(labels) == {"1, 2, 3", "4", "5"}
+    assert labels["5"][1] > labels["1, 2, 3"][1]  # a line higher
+    assert labels["4"][1] == labels["1, 2, 3"][1]  # far apart: the same line

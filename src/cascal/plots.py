@@ -51,6 +51,9 @@ def figure_style(draw: F) -> F:
 
 #: A plan's figure numbers this many of its first proposals.
 _NUMBERED = 12
+#: Width of a character of a plan's order labels, as a fraction of the axes' span (7 pt
+#: on a 7.5 in figure, with a margin): labels closer than their text go a line higher.
+_LABEL_CHAR = 0.009
 #: A verification figure draws U as a band from this many check points, else error bars.
 _BAND_POINTS = 50
 
@@ -259,11 +262,16 @@ def plot_plan(
     for k, p in enumerate(plan.positions, 1):
         ax.axvline(p, color="C3", lw=0.8, alpha=0.7, label="proposed" if k == 1 else None)
     top = float(np.max(now)) * scale
-    for p, orders in _labels(plan.positions[:_NUMBERED], 0.015 * (hi - lo or 1.0)):
-        ax.annotate(orders.replace(",", ", "), (p, 1.04 * top), xytext=(2, 0),
+    width = hi - lo + 2 * pad or 1.0
+    level, end = 0, -np.inf  # a label reaching the next one's place goes a line higher
+    for p, orders in _labels(plan.positions[:_NUMBERED], 0.015 * width):
+        text = orders.replace(",", ", ")
+        level = (level + 1) % 3 if p < end else 0
+        end = p + _LABEL_CHAR * width * (len(text) + 1)
+        ax.annotate(text, (p, (1.04 + 0.07 * level) * top), xytext=(2, 0),
                     textcoords="offset points", fontsize=7, color="C3", ha="left",
                     va="bottom", annotation_clip=False)  # fmt: skip
-    ax.set_ylim(0, 1.2 * top if top > 0 else 1.0)
+    ax.set_ylim(0, 1.3 * top if top > 0 else 1.0)
     ax.set_xlabel(f"test-bed reading [{xunit}]")
     ax.set_ylabel(f"standard uncertainty [{unit}]")
     numbered = "numbered" if plan.positions.size <= _NUMBERED else f"the first {_NUMBERED} numbered"
