@@ -8,6 +8,7 @@ import sqlite3
 import subprocess
 import sys
 import threading
+import time
 from concurrent.futures import Executor, Future
 from concurrent.futures.process import BrokenProcessPool
 
@@ -208,23 +209,34 @@ def test_progress_prints_sparse_plain_lines_when_not_a_terminal():
     assert "ETA" in lines[0]
 
 
-def test_progress_draws_a_bar_with_rate_on_a_terminal():
-    import io
+@pytest.mark.parametrize("columns", [100, 0])
+def test_progress_draws_a_bar_with_rate_on_a_terminal(columns):
+    """On a terminal: a bar with the rate and ETA. A review's case: a pseudo-terminal whose
+    size was never set (0 columns, as in some CI and containers) showed nothing at all,
+    tqdm drawing no bar of no width; it now gets the plain lines."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import termios
 
     from cascal.cli_study import Progress
 
-    class Tty(io.StringIO):
-        def isatty(self):
-            return True
-
-    stream = Tty()
-    p = Progress(stream=stream)
-    for done in (0, 5, 10):
-        p(done, 10)
-    assert p.bar is None  # closed at the last trial: its rate is not the outputs' (a review)
-    p.close()
-    out = stream.getvalue()
-    assert "10/10" in out and "trial/s" in out
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, columns, 0, 0))
+    with os.fdopen(slave, "w") as stream:
+        p = Progress(stream=stream, every_s=0.0)
+        for done in (0, 5, 10):
+            p(done, 10)
+        assert p.bar is None  # closed at the last trial: its rate is not the outputs' (a review)
+        p.close()
+        stream.flush()
+        out = os.read(master, 65536).decode()
+    os.close(master)
+    if columns:
+        assert "10/10" in out and "trial/s" in out
+    else:
+        assert "10/10 trials (100 %)" in out and "trials/s, ETA" in out, out
 
 
 def test_a_study_grows_without_rerunning_stored_trials(tmp_path):
@@ -277,6 +289,27 @@ def test_a_scheduler_address_dask_cannot_use_is_an_input_error(tmp_path, monkeyp
     with pytest.raises(InputError, match=r"--scheduler tls://h:1: cannot reach a Dask sch"):
         run_study(tmp_path / "c", trials=2, config=CONFIG, scheduler="tls://h:1")
     assert not (tmp_path / "c").exists()
+
+
+def test_a_server_that_never_answers_is_no_scheduler(tmp_path, monkeypatch):
+    """A review's case: ``--scheduler`` at the dashboard's port (8787, an HTTP server)
+    took the connection and never answered Dask's handshake; the command waited with no
+    end, and no word. Now it is refused once the handshake has had its seconds."""
+    import socket
+
+    pytest.importorskip("distributed")
+    from cascal import study
+
+    server = socket.create_server(("127.0.0.1", 0))  # accepts (the backlog), never answers
+    port = server.getsockname()[1]
+    monkeypatch.setattr(study, "CONNECT_SECONDS", 1.0)
+    t0 = time.perf_counter()
+    try:
+        with pytest.raises(InputError, match=r"cannot reach a Dask scheduler \(no answer within"):
+            run_study(tmp_path / "s", trials=2, config=CONFIG, scheduler=f"tcp://127.0.0.1:{port}")
+    finally:
+        server.close()
+    assert time.perf_counter() - t0 < 30.0 and not (tmp_path / "s").exists()
 
 
 def test_pinned_blas_stays_single_threaded_on_every_thread(monkeypatch):
@@ -493,6 +526,12 @@ def test_cli_study_names_a_shrunk_summary_and_a_dangling_link(tmp_path):
         done = subprocess.run([*cmd, "--trials", n], capture_output=True, text=True, check=False)
         assert done.returncode == 0, done.stderr
     assert "The folder holds 3 trials; its outputs now cover the first 2" in done.stdout
+    assert "(run with --trials 3 for all)" in done.stdout
+    with sqlite3.connect(out / "study.sqlite") as con:  # a gap, as an interrupted run leaves
+        con.execute("DELETE FROM trials WHERE idx = 1")
+    done = subprocess.run([*cmd, "--trials", "1"], capture_output=True, text=True, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "holds 2 trials" in done.stdout and "(run with --trials 3 for all)" in done.stdout
     link = tmp_path / "dangling"
     link.symlink_to(tmp_path / "nowhere")
     cmd[-1] = str(link)

@@ -9,13 +9,24 @@ import time
 __all__ = ["Progress", "add_study_parser"]
 
 
+def _columns(stream) -> int:
+    """Width of the terminal ``stream`` is, in characters; 0 where it has none."""
+    import os
+
+    try:
+        return os.get_terminal_size(stream.fileno()).columns
+    except (OSError, ValueError, AttributeError):
+        return 0
+
+
 class Progress:
     """A bar with rate and ETA on a terminal; sparse plain lines otherwise (logs, CI)."""
 
     def __init__(self, stream=None, every_s: float = 15.0, unit: str = "trial") -> None:
         self.stream = stream or sys.stderr
         self.unit = unit
-        self.tty = self.stream.isatty()
+        self.tty = self.stream.isatty() and _columns(self.stream) > 0  # (tqdm draws no bar
+        # on a terminal of no width, as a pseudo-terminal whose size was never set)
         self.bar = None
         self.every_s = every_s
         self.t0 = time.perf_counter()
@@ -64,6 +75,10 @@ def _cmd_study(args: argparse.Namespace) -> int:
     check_output(args.out, folder=True, option="--out")
     config = StudyConfig(seed=args.seed, n_restarts=args.restarts)
     progress = Progress()
+    if args.scheduler is not None:  # a lost cluster is the command's one line, not Dask's log
+        import logging
+
+        logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
     t0 = time.perf_counter()
     try:
         outcome = run_study(
@@ -82,7 +97,7 @@ def _cmd_study(args: argparse.Namespace) -> int:
     if outcome.stored > s["n_trials"]:
         print(
             f"The folder holds {outcome.stored} trials; its outputs now cover the first "
-            f"{s['n_trials']} (run with --trials {outcome.stored} for all)."
+            f"{s['n_trials']} (run with --trials {outcome.span} for all)."
         )
     print(f"{'method':>14} {'median J':>12} {'mean J':>12} {'q10':>10} {'q90':>10}  [µm]")
     for m, st in s["methods"].items():

@@ -50,6 +50,8 @@ class StudyOutcome:
         summary: As written to ``summary.json``.
         ran: Trials computed by this call (the rest were resumed from the database).
         stored: Trials in the folder's database, those beyond ``trials`` included.
+        span: The ``trials`` whose study covers every stored one (the highest stored
+            index plus one: an interrupted run can leave gaps).
     """
 
     folder: Path
@@ -57,6 +59,7 @@ class StudyOutcome:
     summary: dict
     ran: int
     stored: int = 0
+    span: int = 0
 
 
 def run_study(
@@ -129,7 +132,8 @@ def run_study(
         db.close()
         if client is not None:
             client.close()
-    return StudyOutcome(folder, results, summary, len(pending), len(stored))
+    span = max((r.index for r in stored), default=-1) + 1
+    return StudyOutcome(folder, results, summary, len(pending), len(stored), span)
 
 
 def _write_outputs(folder: Path, results: list[TrialResult], config: StudyConfig) -> dict:
@@ -239,14 +243,38 @@ def _named(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
 
 
+#: Seconds a Dask scheduler has to answer.
+CONNECT_SECONDS = 10.0
+
+
 def _connect(address: str):
-    """A Dask client of the scheduler at ``address``; a bad address is an InputError."""
+    """A Dask client of the scheduler at ``address``; a bad address is an InputError, and
+    so is one where nothing answers Dask's handshake within :data:`CONNECT_SECONDS`."""
     from distributed import Client
 
     try:
-        return Client(address, timeout="10s")
+        _handshake(address, CONNECT_SECONDS)
+        return Client(address, timeout=f"{CONNECT_SECONDS:g}s")
     except (OSError, ValueError, TimeoutError, TypeError) as exc:  # TypeError: tls://, ucx://
-        raise InputError(f"--scheduler {address}: cannot reach a Dask scheduler ({exc})") from None
+        why = f"{exc}" if str(exc) else f"no answer within {CONNECT_SECONDS:g} s"
+        if isinstance(exc, TimeoutError) and address.rstrip("/").endswith(":8787"):
+            why += "; 8787 is the dashboard's port, the scheduler's is 8786 by default"
+        raise InputError(f"--scheduler {address}: cannot reach a Dask scheduler ({why})") from None
+
+
+def _handshake(address: str, seconds: float) -> None:
+    """Open and close one Dask connection to ``address`` within ``seconds``: a server that
+    takes the connection but never answers (a dashboard's HTTP port) had kept the
+    client waiting with no end, its own timeout notwithstanding. TimeoutError if not."""
+    import asyncio
+
+    from distributed.comm import connect
+
+    async def probe() -> None:
+        comm = await asyncio.wait_for(connect(address, timeout=seconds), seconds)
+        await comm.close()
+
+    asyncio.run(probe())
 
 
 def _mean_seconds(results: list[TrialResult]) -> dict[str, float]:
