@@ -66,3 +66,30 @@ def test_the_report_repeats_what_fit_warned_of():
     assert "Cautions" in homo and html.escape(HOMOSCEDASTIC_U) in homo
     assert "Cautions" not in build_report(fit_model([ref, dev], n_restarts=2))
     assert finding.stage == 0 and finding.points == 3
+
+
+def test_the_correction_figure_marks_the_arc_a_rotary_device_left_out():
+    """A user review's case: the report's correction figure drew +-U straight through the
+    part of the turn the device readings left out, unmarked, while the text above named it
+    as flagged. It is shaded now, in every turn drawn, and named in the legend."""
+    from dataclasses import replace
+
+    from cascal.report import correction_curve, correction_figure
+    from cascal.workflow import unmeasured_arc
+
+    case = rotary_demo(0)
+    dev = case.stages[1]
+    keep = (dev.x < 150.0) | (dev.x > 250.0)
+    part = replace(case, stages=(case.stages[0], replace(dev, x=dev.x[keep], y=dev.y[keep])))
+    model = fit_model(demo_stages(part), kernel="periodic", period=360.0, unit="deg",
+                      n_restarts=1)  # fmt: skip
+    curve = correction_curve(model)
+    assert curve.arc == unmeasured_arc(model) is not None
+    ax = correction_figure(curve, unit="deg", period=360.0).axes[0]
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert "device readings leave out (flagged)" in labels
+    start = curve.arc[0]
+    spans = [p.get_x() for p in ax.patches if p.get_label() != "reference could not measure"]
+    assert any(abs(x - start) < 1e-9 for x in spans)
+    full = fit_model(demo_stages(case), kernel="periodic", period=360.0, n_restarts=1)
+    assert correction_curve(full).arc is None

@@ -38,6 +38,8 @@ __all__ = [
 
 _SI = (("m", 1.0), ("mm", 1e3), ("µm", 1e6), ("nm", 1e9))
 _GAP_STYLE = dict(color="0.55", alpha=0.25, lw=0, hatch="//")
+#: The part of the turn a rotary device's readings leave out (flagged by correct).
+_ARC_STYLE = dict(color="C3", alpha=0.15, lw=0, hatch="\\\\")
 
 
 def display_scale(unit: str, magnitude: float) -> tuple[float, str]:
@@ -132,6 +134,10 @@ def correction_figure(curve: CurveView, *, unit: str, period: float | None = Non
         axes[1].set_ylabel(f"expanded uncertainty [{uu}]")
     for a in axes:
         _shade(a, curve.gaps, period, "reference could not measure" if a is ax else None)
+        if curve.arc is not None and period is not None:  # (a review: drawn unmarked)
+            start, end = curve.arc
+            label = "device readings leave out (flagged)" if a is ax else None
+            _shade(a, [(start, end if end > start else end + period)], period, label, _ARC_STYLE)
         if period is None:
             for edge in curve.calibrated_range:
                 a.axvline(edge, color="0.4", ls=":", lw=1)
@@ -141,7 +147,8 @@ def correction_figure(curve: CurveView, *, unit: str, period: float | None = Non
     return fig
 
 
-def _shade(ax, gaps, period, label) -> None:
+def _shade(ax, gaps, period, label, style=None) -> None:
+    """Shade the stretches ``gaps`` (in every turn shown, for a ``period``)."""
     for a, b in gaps:
         spans = (
             [(a, b)]
@@ -149,7 +156,7 @@ def _shade(ax, gaps, period, label) -> None:
             else [(a - period, b - period), (a, b), (a + period, b + period)]
         )
         for lo, hi in spans:
-            ax.axvspan(lo, hi, label=label, **_GAP_STYLE)
+            ax.axvspan(lo, hi, label=label, **(style or _GAP_STYLE))
             label = None
 
 

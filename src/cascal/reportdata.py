@@ -18,7 +18,7 @@ from .gp import Z95, FittedGP
 from .io.modelfile import CalibrationModel
 from .planning import GAP_FACTOR, find_gaps
 from .screening import Screening, screen
-from .workflow import correct
+from .workflow import correct, unmeasured_arc
 
 __all__ = [
     "GAP_FACTOR",
@@ -85,6 +85,9 @@ class CurveView:
         u: Standard uncertainty, shape (g,), or None (lut).
         gaps: Device readings where the reference could not measure, list of (lo, hi).
         calibrated_range: Smallest and largest device reading calibrated.
+        arc: For a periodic model, the part of the turn the device readings leave out,
+            ``(start, end)`` through the period where ``end < start``
+            (:func:`~cascal.workflow.unmeasured_arc`), or None.
     """
 
     grid: np.ndarray
@@ -92,6 +95,7 @@ class CurveView:
     u: np.ndarray | None
     gaps: list[tuple[float, float]]
     calibrated_range: tuple[float, float]
+    arc: tuple[float, float] | None = None
 
 
 def _carry(
@@ -189,4 +193,5 @@ def correction_curve(model: CalibrationModel) -> CurveView:
         grid = np.linspace(lo, hi, _GRID * 2)
     c = correct(model, grid)
     u = None if np.all(np.isnan(c.u)) else c.u
-    return CurveView(grid, c.corrected - grid, u, reference_gaps(model)[-1], (lo, hi))
+    arc = unmeasured_arc(model) if model.periodic else None
+    return CurveView(grid, c.corrected - grid, u, reference_gaps(model)[-1], (lo, hi), arc)
