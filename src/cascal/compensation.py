@@ -51,8 +51,9 @@ class CompensationTable:
 
     A periodic table also flags a reading from :attr:`limit` on (in magnitude): where a
     float64 holds the reading less finely than the smallest u on the nodes, its correction
-    is lost to rounding. :func:`cascal.workflow.correct` flags by each reading's own u
-    (not smaller), so the table flags every reading it flags, and a few more.
+    is lost to rounding. :func:`cascal.workflow.correct` flags by each reading's own u,
+    at least the nodes' smallest but where u dips between two nodes, so the table flags
+    what it flags (bar such dips, within a factor of 2 of the limit), and a few more.
     """
 
     lo: float

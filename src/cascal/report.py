@@ -24,7 +24,7 @@ from .reportdata import CurveView, StageView, correction_curve, stage_views
 from .screening import LEVEL, Screening
 from .text import arc_text, caution_lines, hyperparameter_unit, range_text
 from .verification import Comparison, Verification
-from .workflow import MeasurementPlan, plan_measurements
+from .workflow import MeasurementPlan, arc_width, plan_measurements
 
 __all__ = [
     "build_report",
@@ -135,9 +135,9 @@ def correction_figure(curve: CurveView, *, unit: str, period: float | None = Non
     for a in axes:
         _shade(a, curve.gaps, period, "reference could not measure" if a is ax else None)
         if curve.arc is not None and period is not None:  # (a review: drawn unmarked)
-            start, end = curve.arc
+            start, width = arc_width(curve.arc, period)
             label = "device readings leave out (flagged)" if a is ax else None
-            _shade(a, [(start, end if end > start else end + period)], period, label, _ARC_STYLE)
+            _shade(a, [(start, start + width)], period, label, _ARC_STYLE)
         if period is None:
             for edge in curve.calibrated_range:
                 a.axvline(edge, color="0.4", ls=":", lw=1)

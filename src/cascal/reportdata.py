@@ -193,5 +193,5 @@ def correction_curve(model: CalibrationModel) -> CurveView:
         grid = np.linspace(lo, hi, _GRID * 2)
     c = correct(model, grid)
     u = None if np.all(np.isnan(c.u)) else c.u
-    arc = unmeasured_arc(model) if model.periodic else None
-    return CurveView(grid, c.corrected - grid, u, reference_gaps(model)[-1], (lo, hi), arc)
+    gaps = reference_gaps(model)[-1]
+    return CurveView(grid, c.corrected - grid, u, gaps, (lo, hi), unmeasured_arc(model))

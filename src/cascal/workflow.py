@@ -483,12 +483,11 @@ def correct(model: CalibrationModel, readings: object) -> Correction:
             corrected, u = device(r), np.full(r.shape, np.nan)
         if model.periodic:  # a reading too large for its correction's digits
             out = np.spacing(np.abs(r)) > u
-    if model.periodic:
-        arc = unmeasured_arc(model)
-        if arc is not None:  # or in the part of the turn the device was not measured on
-            out |= in_arc(r, arc_width(arc, float(model.period)), float(model.period))
-    else:
-        out = (r < lo) | (r > hi)
+            arc = unmeasured_arc(model)
+            if arc is not None:  # or in the part of the turn the device was not measured on
+                out |= in_arc(r, arc_width(arc, float(model.period)), float(model.period))
+        else:
+            out = (r < lo) | (r > hi)
     return Correction(r, corrected, u, out)
 
 
@@ -773,7 +772,7 @@ def plan_measurements(
     upper = model.data[1].y
     if model.method == "bayes":
         x1 = model.data[1].x
-        arc = unmeasured_arc(model) if period is not None else None
+        arc = unmeasured_arc(model)
         if period is None:
             grid = np.linspace(float(x1.min()), float(x1.max()), _PLAN_TARGET)
             span1 = f"range {range_text(float(grid[0]), float(grid[-1]))} {unit}"
@@ -781,8 +780,8 @@ def plan_measurements(
             grid = np.linspace(0.0, period, _PLAN_TARGET, endpoint=False)
             span1 = f"full turn (period {period:g})"
         else:  # the measured part of the turn, from where the gap ends round to its start
-            width = (arc[0] - arc[1]) % period
-            grid = np.mod(arc[1] + np.linspace(0.0, width, _PLAN_TARGET), period)
+            measured = period - arc_width(arc, period)[1]
+            grid = np.mod(arc[1] + np.linspace(0.0, measured, _PLAN_TARGET), period)
             span1 = turn_text(arc, unit, period)
         target = LowerStage(lower, upper, grid)  # type: ignore[arg-type]
         plan = plan_reference(
