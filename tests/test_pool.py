@@ -8,6 +8,7 @@ import signal
 import sys
 import threading
 import time
+from concurrent.futures import Future
 
 import pytest
 
@@ -85,3 +86,72 @@ class _Interrupting:
         os.kill(os.getpid(), signal.SIGINT)
         self.made.append(self.ex.submit(fn, *args))
         return self.made[-1]
+
+
+def _never_done(n: int) -> list[Future]:
+    return [Future() for _ in range(n)]
+
+
+@pytest.mark.parametrize("repeat", range(15))
+def test_two_ctrl_c_hard_on_each_other_while_waiting_raise_one_interrupt(repeat):
+    """A review's case: two SIGINTs back to back while the study waited for results broke
+    ``as_completed``'s lock about one time in three ("RuntimeError: release unlocked
+    lock", a traceback and exit 1). Now the wait records them and the loop raises one
+    KeyboardInterrupt between waits, the handlers then restored."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    futures = _never_done(2)
+
+    def twice() -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    timer = threading.Timer(0.05 + 0.01 * repeat, twice)
+    with pytest.raises(KeyboardInterrupt) as caught:
+        with pool.deferred_signals() as got:
+            timer.start()
+            for _ in pool.completed(futures, got, poll_s=0.05):
+                pytest.fail("no future finishes")
+    timer.join()
+    assert type(caught.value) is KeyboardInterrupt
+    assert got in ([signal.SIGINT], [signal.SIGINT] * 2)  # (two pending signals can merge)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+def test_sigterm_while_waiting_is_raised_as_terminated():
+    futures = _never_done(1)
+    threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGTERM)).start()
+    with pytest.raises(pool.Terminated):
+        with pool.deferred_signals() as got:
+            for _ in pool.completed(futures, got, poll_s=0.05):
+                pass
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+def test_completed_yields_in_list_order_and_signals_wait_for_the_caller():
+    """Futures finished together come in list order; a signal recorded while the caller
+    works on a result is raised at the next wait, and one left at the end on leaving."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    futures = _never_done(3)
+    for i in (2, 0, 1):
+        futures[i].set_result(i)
+    with pytest.raises(KeyboardInterrupt):
+        with pool.deferred_signals() as got:
+            seen = []
+            for fut in pool.completed(futures, got):
+                seen.append(fut.result())
+                os.kill(os.getpid(), signal.SIGINT)  # handled here: recorded, not raised
+                time.sleep(0.01)
+            assert seen == [0, 1, 2] and got  # all three yielded: they finished together
+    with pytest.raises(KeyboardInterrupt):
+        with pool.deferred_signals():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.01)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # an ignored Ctrl-C stays ignored
+    try:
+        with pool.deferred_signals() as got:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.01)
+        assert got == []
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)

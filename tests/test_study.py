@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import re
+import signal
 import sqlite3
 import subprocess
 import sys
@@ -538,3 +540,51 @@ def test_cli_study_names_a_shrunk_summary_and_a_dangling_link(tmp_path):
     done = subprocess.run([*cmd, "--trials", "1"], capture_output=True, text=True, check=False)
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert f"--out {link}: a link to {tmp_path / 'nowhere'}, which does not exist" in done.stderr
+
+
+def _stored(db) -> int:
+    try:
+        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1)
+        try:
+            return con.execute("SELECT COUNT(*) FROM trials").fetchone()[0]
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return 0
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+@pytest.mark.parametrize(
+    ("signals", "status", "word"),
+    [(("SIGINT", "SIGINT"), 130, "interrupted"), (("SIGTERM",), 143, "terminated")],
+    ids=["two_ctrl_c_together", "sigterm"],
+)
+def test_cli_study_stopped_by_signals_says_so_and_resumes(tmp_path, signals, status, word):
+    """A review's cases: two Ctrl-C back to back (a terminal sends them to the whole
+    process group) ended about one time in three with a traceback from ``as_completed``
+    and exit 1; SIGTERM ended with multiprocessing's warning of leaked semaphores and no
+    word of the stored trials. Both now stop the workers and say so, and the same command
+    then finishes the study."""
+    out = tmp_path / "s"
+    cmd = [sys.executable, "-m", "cascal.cli", "study", "--trials", "2000", "--workers", "2"]
+    cmd += ["--restarts", "2", "--seed", "7", "--out", str(out)]
+    p = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )
+    deadline = time.monotonic() + 120
+    while _stored(out / "study.sqlite") < 1 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    for name in signals:
+        os.killpg(p.pid, getattr(signal, name))
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == status, err
+    assert "Traceback" not in err and "leaked" not in err
+    assert f"cascal study: {word} (the trials stored in {out} stay" in err
+    stored = _stored(out / "study.sqlite")
+    assert 1 <= stored < 2000
+    resumed = run_study(out, trials=stored + 3, config=CONFIG, workers=1)
+    assert resumed.ran >= 3 and [r.index for r in resumed.results] == list(range(stored + 3))

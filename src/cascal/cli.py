@@ -25,6 +25,8 @@ EXIT_BAD_INPUT = 2
 EXIT_FAILURE = 1  # an output could not be written, or some devices of a fleet failed
 EXIT_NOT_CONFORMING = 3  # cascal verify: a check point is not shown to conform to the MPE
 EXIT_BROKEN_PIPE = 141  # the reader of stdout left (as a shell reports a process SIGPIPE ended)
+EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT, as a shell reports)
+EXIT_TERMINATED = 143  # SIGTERM, where the command stops its workers first (128 + SIGTERM)
 
 
 def _cmd_example(args: argparse.Namespace) -> int:
@@ -1064,7 +1066,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         ignore_interrupts()
         print("cascal: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
 
 
 def _main(argv: Sequence[str] | None) -> int:
@@ -1103,12 +1105,14 @@ def _main(argv: Sequence[str] | None) -> int:
             file=sys.stderr,
         )
         return EXIT_FAILURE
-    except KeyboardInterrupt:
-        from .pool import ignore_interrupts
+    except KeyboardInterrupt as exc:
+        from .pool import Terminated, ignore_interrupts
 
         ignore_interrupts()
-        print(f"cascal {args.command}: interrupted", file=sys.stderr)
-        return 130
+        what = "terminated" if isinstance(exc, Terminated) else "interrupted"
+        detail = f" ({exc})" if str(exc) else ""
+        print(f"cascal {args.command}: {what}{detail}", file=sys.stderr)
+        return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":  # pragma: no cover

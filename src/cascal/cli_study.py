@@ -89,6 +89,8 @@ def _cmd_study(args: argparse.Namespace) -> int:
             scheduler=args.scheduler,
             progress=progress,
         )
+    except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM: what was stored stays
+        raise type(exc)(f"the trials stored in {args.out} stay: the same command resumes") from None
     finally:
         progress.close()
     wall = time.perf_counter() - t0

@@ -5,7 +5,9 @@ tracebacks (while they import NumPy at their start, or mid-task), and a second C
 that interrupted the wait for them could hang the process at exit. So workers start with
 SIGINT blocked and then ignore it (:func:`ignore_interrupts` in their initializer); the
 command shuts them down on the first Ctrl-C (:func:`shutdown`), and a second one stops
-them at once.
+them at once. While the command waits for results (:func:`completed`), Ctrl-C and SIGTERM
+are taken between waits, never inside one: a second Ctrl-C hard on the first had broken
+the wait's lock ("release unlocked lock").
 """
 
 from __future__ import annotations
@@ -15,10 +17,14 @@ import multiprocessing
 import signal
 import threading
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 
 #: Whether this platform has signal masks (POSIX; not Windows).
 _MASKS = hasattr(signal, "pthread_sigmask")
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, a batch system's end of a job), taken as a Ctrl-C is."""
 
 
 def _main_thread() -> bool:
@@ -86,6 +92,49 @@ def shutdown(pool: ProcessPoolExecutor, *, wait_for_tasks: bool, interrupted: bo
     if signals and not interrupted:
         raise KeyboardInterrupt
     return bool(stopped)
+
+
+@contextlib.contextmanager
+def deferred_signals() -> Iterator[list[int]]:
+    """Within: SIGINT and SIGTERM are recorded in the list this yields instead of acting at
+    once (only where they would raise KeyboardInterrupt and end the process: the default
+    handlers, in the main thread). :func:`raise_signals` raises them where the caller
+    chooses; any left at the end are raised there, unless an exception is under way."""
+    got: list[int] = []
+    if not _main_thread():
+        yield got
+        return
+    defaults = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
+    previous = {}
+    for signum, default in defaults.items():
+        if signal.getsignal(signum) is default:
+            previous[signum] = signal.signal(signum, lambda signum, frame: got.append(signum))
+    try:
+        yield got
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    raise_signals(got)
+
+
+def raise_signals(got: list[int]) -> None:
+    """Raise what :func:`deferred_signals` recorded: :class:`Terminated` where the first
+    was SIGTERM, KeyboardInterrupt where it was SIGINT; nothing where none came."""
+    if got:
+        raise Terminated if got[0] == signal.SIGTERM else KeyboardInterrupt
+
+
+def completed(futures: list[Future], got: list[int], poll_s: float = 0.2) -> Iterator[Future]:
+    """Yield ``futures`` as they finish (those finishing together in list order), raising
+    the signals that :func:`deferred_signals` recorded in ``got`` between the waits (each
+    wait at most ``poll_s`` seconds)."""
+    order = {id(f): i for i, f in enumerate(futures)}
+    pending = set(futures)
+    while pending:
+        raise_signals(got)
+        done, pending = wait(pending, timeout=poll_s, return_when=FIRST_COMPLETED)
+        raise_signals(got)
+        yield from sorted(done, key=lambda f: order[id(f)])
 
 
 @contextlib.contextmanager

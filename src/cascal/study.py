@@ -21,7 +21,6 @@ from concurrent.futures import (
     CancelledError,
     Executor,
     Future,
-    as_completed,
 )
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,7 +32,15 @@ from .gp import pin_blas
 from .io.atomic import save_figure, together, write_text
 from .io.studydb import StudyDB
 from .montecarlo import StudyConfig, TrialResult, run_chunk, run_trial, summarize
-from .pool import ignore_interrupts, shutdown, spawn_pool, submit_all
+from .pool import (
+    completed,
+    deferred_signals,
+    ignore_interrupts,
+    raise_signals,
+    shutdown,
+    spawn_pool,
+    submit_all,
+)
 
 __all__ = ["StudyOutcome", "run_study", "trials_table"]
 
@@ -215,27 +222,29 @@ def _execute(config, chunks, executor, n_workers):
     futures: list[Future] = []
     calls = [(config, c) for c in chunks]
     failed = True
-    try:
-        if pool is not None:
-            futures = submit_all(pool, run_chunk, calls)
-        else:
-            futures = [executor.submit(run_chunk, *call) for call in calls]
-        for fut in as_completed(futures):
-            try:
-                results = fut.result()
-            except (CancelledError, BrokenExecutor) as exc:  # a worker killed, a lost cluster
-                raise WorkerError(f"lost the workers ({_named(exc)})") from None
-            except Exception as exc:
-                if type(exc).__module__.split(".")[0] != "distributed":
-                    raise
-                raise WorkerError(f"the Dask cluster failed ({_named(exc)})") from None
-            yield results
-        failed = False
-    finally:
-        for f in futures:
-            f.cancel()
-        if pool is not None:  # interrupted: the chunks under way run again on resuming
-            shutdown(pool, wait_for_tasks=not failed, interrupted=failed)
+    with deferred_signals() as got:  # Ctrl-C and SIGTERM between waits, not inside one
+        try:
+            if pool is not None:
+                futures = submit_all(pool, run_chunk, calls)
+            else:
+                futures = [executor.submit(run_chunk, *call) for call in calls]
+            for fut in completed(futures, got):
+                try:
+                    results = fut.result()
+                except (CancelledError, BrokenExecutor) as exc:  # a worker killed, a lost cluster
+                    raise_signals(got)  # (by the signal that stops the command: say that)
+                    raise WorkerError(f"lost the workers ({_named(exc)})") from None
+                except Exception as exc:
+                    if type(exc).__module__.split(".")[0] != "distributed":
+                        raise
+                    raise WorkerError(f"the Dask cluster failed ({_named(exc)})") from None
+                yield results
+            failed = False
+        finally:
+            for f in futures:
+                f.cancel()
+            if pool is not None:  # interrupted: the chunks under way run again on resuming
+                shutdown(pool, wait_for_tasks=not failed, interrupted=failed)
 
 
 def _named(exc: BaseException) -> str:
