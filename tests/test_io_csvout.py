@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cascal.io import csvout
-from cascal.io.csvout import auto_decimals, format_columns, write_columns
+from cascal.io.csvout import auto_decimals, exact_decimals, format_columns, write_columns
 
 
 @settings(max_examples=60, deadline=None)
@@ -141,3 +141,47 @@ def test_readings_with_one_decimal_more_stay_on_the_fast_path():
     text = format_columns([v], 10)
     assert text is not None  # not left to the caller's Python formatting
     assert text.decode().splitlines() == [f"{x:.10f}" for x in v.tolist()]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.floats(min_value=-1e5, max_value=1e5, allow_nan=False, allow_infinity=False),
+        min_size=1,
+        max_size=20,
+    ),
+    st.integers(min_value=0, max_value=12),
+    st.integers(min_value=0, max_value=6),
+)
+def test_exact_decimals_write_readings_back_exactly(values, digits, least):
+    """Values of ``digits`` decimals come back from their text as the same floats, with
+    no more decimals than they need (and never fewer than ``least``)."""
+    v = np.round(np.array(values), digits)
+    k = exact_decimals(v, least)
+    assert k >= least
+    text = format_columns([v], k)
+    assert text is not None
+    assert [float(c) for c in text.decode().splitlines()] == v.tolist()
+    if k > max(least, digits):  # then digits decimals must not have been enough
+        assert [float(f"{x:.{digits}f}") for x in v.tolist()] != v.tolist()
+
+
+def test_exact_decimals_stop_where_the_fast_path_does():
+    v = np.array([123.45678901234567, np.nan, -1.5])  # 17 significant digits
+    k = exact_decimals(v, 3)
+    assert k == 13 and format_columns([v], k) is not None  # 1.2e15 < 2^53 < 1.2e16
+    assert exact_decimals(np.array([1e300]), 4) == 4  # beyond 2^53 already: as asked
+
+
+def test_decimals_per_column():
+    a, b = np.array([0.123456789, 2.0]), np.array([1.0, -0.25])
+    text = format_columns([a, b, np.array([1, 0])], [9, 2, 0])
+    assert text == b"0.123456789,1.00,1\n2.000000000,-0.25,0\n"
+    big = np.array([1e17, 0.5])  # beyond 2^53: Python's formatting, the same decimals
+    assert format_columns([big, b], [1, 3]) is None
+
+
+def test_write_columns_slow_path_keeps_decimals_per_column(tmp_path):
+    big, b = np.array([1e15, 0.5]), np.array([1.0, -0.25])
+    write_columns(tmp_path / "o.csv", {"a": big, "b": b}, decimals=[2, 3])
+    assert (tmp_path / "o.csv").read_text() == ("a,b\n1000000000000000.00,1.000\n0.50,-0.250\n")

@@ -319,7 +319,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     """Correct device readings with a model; write reading, corrected, u, U, out_of_range."""
     import numpy as np
 
-    from .io.csvout import auto_decimals, write_columns
+    from .io.csvout import auto_decimals, exact_decimals, write_columns
     from .io.data import read_readings
     from .text import range_text
     from .workflow import correct, far_off, unmeasured_arc
@@ -360,7 +360,8 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     }
     inside = ~out  # far-off readings must not cost the others their decimals
     decimals = auto_decimals([c.reading[inside], c.corrected[inside]], c.u[inside] if gp else None)
-    path = write_columns(args.output, columns, decimals=decimals)
+    given = exact_decimals(c.reading[inside], decimals)  # the readings as read, not rounded
+    path = write_columns(args.output, columns, decimals=[given] + [decimals] * 3 + [0])
     if n_out:
         first = int(table.rows[np.argmax(out)])
         what = "left empty" if args.out_of_range == "empty" else "extrapolated, do not trust them"
@@ -376,7 +377,8 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     if not gp:
         warn("correct", "method lut gives no uncertainty: columns u and U are left empty")
     what = "reading" if out.size == 1 else "readings"
-    print(f"Corrected {out.size} {what} -> {path} ({decimals} decimals)")
+    as_read = f"; readings as read, {given}" if given > decimals else ""
+    print(f"Corrected {out.size} {what} -> {path} ({decimals} decimals{as_read})")
     return 0
 
 

@@ -54,7 +54,7 @@ def test_command_output_equals_library_in_memory(corrected, linear_files, linear
     c = correct(model, read_readings(readings).columns[0])
     inside = ~c.out_of_range  # the decimals come from the readings inside the range
     decimals = auto_decimals([c.reading[inside], c.corrected[inside]], c.u[inside])
-    assert f"({decimals} decimals)" in res.stdout
+    assert f"({decimals} decimals" in res.stdout
     tol = 0.5 * 10.0**-decimals + 1e-15
     np.testing.assert_allclose(table.columns[1], c.corrected, rtol=0, atol=tol)
     np.testing.assert_allclose(table.columns[2], c.u, rtol=0, atol=tol)
@@ -300,3 +300,28 @@ def test_readings_all_outside_the_range_suggest_a_unit(linear_model, tmp_path):
     near.write_text("reading\n0.945\n0.96\n")
     res = run_cascal("correct", linear_model, near, "-o", tmp_path / "n.csv")
     assert "2 of 2 readings lie outside" in res.stderr and "unit" not in res.stderr
+
+
+def test_correct_echoes_readings_as_read(linear_model, linear_files, tmp_path):
+    """A review's case: readings kept with more decimals than the corrections need were
+    written back rounded to the corrections' decimals (up to 5e-10 deg off the input), so
+    an output row did not always match its input row. They are now echoed exactly."""
+    _, readings = linear_files
+    r = read_readings(readings).columns[0]
+    lo, hi = load_model(linear_model).calibrated_range
+    fine = np.round(np.linspace(lo, hi, 2001) + 1e-9 * np.sin(np.arange(2001)), 14)
+    src = tmp_path / "fine.csv"
+    src.write_text("reading\n" + "".join(f"{x!r}\n" for x in fine.tolist()))
+    out = tmp_path / "out.csv"
+    res = run_cascal("correct", linear_model, src, "-o", out)
+    assert res.returncode == 0, res.stderr
+    decimals = int(res.stdout.split("(")[1].split(" decimals")[0])
+    assert decimals < 14 and "; readings as read, 14)" in res.stdout
+    table = read_table(out, ("reading", "corrected"))
+    np.testing.assert_array_equal(table.columns[0], fine)  # every bit
+    cells = [line.split(",")[1] for line in out.read_text().splitlines()[1:]]
+    assert {len(c.split(".")[1]) for c in cells} == {decimals}  # corrections as before
+    plain = tmp_path / "plain.csv"  # readings with few decimals: the message as before
+    plain.write_text("reading\n" + "".join(f"{x:.3f}\n" for x in r[:50].tolist()))
+    res = run_cascal("correct", linear_model, plain, "-o", tmp_path / "p.csv")
+    assert res.returncode == 0 and "readings as read" not in res.stdout, res.stderr

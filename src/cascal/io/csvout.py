@@ -18,7 +18,7 @@ import numpy as np
 
 from .atomic import atomic_write
 
-__all__ = ["auto_decimals", "format_columns", "write_columns"]
+__all__ = ["auto_decimals", "exact_decimals", "format_columns", "write_columns"]
 
 #: Above this many rows, CSV text is built on several threads.
 _THREADED_ROWS = 200_000
@@ -48,7 +48,27 @@ def auto_decimals(values: Sequence[np.ndarray], u: np.ndarray | None = None) -> 
     return int(min(max(k, 0), 17))
 
 
-def format_columns(columns: Sequence[np.ndarray], decimals: int) -> bytes | None:
+def exact_decimals(values: np.ndarray, least: int) -> int:
+    """The fewest decimals, at least ``least``, with which every finite value of
+    ``values`` (any shape) is written back exactly (its text reads as the same float):
+    for echoing readings as they were read, whose file may keep more decimals than the
+    corrections need. Where none up to 17 (or up to where ``|value| * 10**decimals``
+    reaches 2^53, see :func:`format_columns`) does, the most there; ``least`` where that
+    is fewer."""
+    a = np.abs(np.asarray(values, dtype=float))
+    a = a[np.isfinite(a)]
+    best = least
+    for k in range(least, 18):
+        q = np.rint(a * 10.0**k)
+        if q.size and float(q.max()) >= 2.0**53:
+            break
+        best = k
+        if np.array_equal(q / 10.0**k, a):  # (q exact, 10^k exact: one correct rounding)
+            break
+    return best
+
+
+def format_columns(columns: Sequence[np.ndarray], decimals: int | Sequence[int]) -> bytes | None:
     """CSV rows (no header) of equal-length columns, as UTF-8 bytes.
 
     Float columns get ``decimals`` decimals, correctly rounded as Python's ``format``
@@ -63,24 +83,34 @@ def format_columns(columns: Sequence[np.ndarray], decimals: int) -> bytes | None
 
     Args:
         columns: Arrays, each shape (n,).
-        decimals: Decimals of the float columns, 0 to 17.
+        decimals: Decimals of the float columns, 0 to 17: one for all, or one per column.
     """
     cols = [np.asanyarray(c) for c in columns]
+    decs = _per_column(decimals, len(cols))
     n = cols[0].size if cols else 0
     workers = min(os.cpu_count() or 1, 8)
     if n < _THREADED_ROWS or workers == 1:
-        return _format_block(cols, decimals)
+        return _format_block(cols, decs)
     edges = np.linspace(0, n, workers + 1).astype(int)
     blocks = [[c[a:b] for c in cols] for a, b in itertools.pairwise(edges)]
     with ThreadPoolExecutor(workers) as pool:
-        parts = list(pool.map(lambda b: _format_block(b, decimals), blocks))
+        parts = list(pool.map(lambda b: _format_block(b, decs), blocks))
     return None if any(p is None for p in parts) else b"".join(parts)  # type: ignore[arg-type]
 
 
-def _format_block(cols: list[np.ndarray], decimals: int) -> bytes | None:
+def _per_column(decimals: int | Sequence[int], n: int) -> list[int]:
+    """``decimals`` as one count per column of ``n``."""
+    if isinstance(decimals, int | np.integer):
+        return [int(decimals)] * n
+    if len(decimals) != n:
+        raise ValueError(f"decimals: expected one per column ({n}), got {len(decimals)}")
+    return [int(d) for d in decimals]
+
+
+def _format_block(cols: list[np.ndarray], decs: list[int]) -> bytes | None:
     n = cols[0].size if cols else 0
     plans = []
-    for v in cols:
+    for v, decimals in zip(cols, decs, strict=True):
         k = 0 if v.dtype.kind in "biu" else decimals
         v = np.ma.filled(v.astype(float), np.nan)
         ok = np.isfinite(v)
@@ -137,14 +167,14 @@ def _digits(buf: np.ndarray, o: int, q: np.ndarray, nd: int, k: int) -> None:
 
 
 def write_columns(
-    path: str | os.PathLike, columns: dict[str, np.ndarray], *, decimals: int
+    path: str | os.PathLike, columns: dict[str, np.ndarray], *, decimals: int | Sequence[int]
 ) -> Path:
     """Write a CSV file atomically: a header, then one row per entry of the columns.
 
     Args:
         path: Destination.
         columns: Name -> values, all shape (n,); see :func:`format_columns`.
-        decimals: Decimals of the float columns.
+        decimals: Decimals of the float columns: one for all, or one per column.
     """
     sizes = {np.shape(v) for v in columns.values()}
     if len(sizes) > 1 or any(len(sz) != 1 for sz in sizes):
@@ -156,12 +186,14 @@ def write_columns(
     return atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
 
 
-def _write_slow(path: str | os.PathLike, columns: dict[str, np.ndarray], decimals: int) -> Path:
+def _write_slow(
+    path: str | os.PathLike, columns: dict[str, np.ndarray], decimals: int | Sequence[int]
+) -> Path:
     """As :func:`write_columns`, one cell at a time: for values beyond 2^53 / 10^decimals
     (or many near half-way points, see :func:`format_columns`).
     Those up to 1e16 keep the decimals too; larger ones are written in full (``1e+300``)."""
 
-    def cell(x: float | int | None) -> str:
+    def cell(x: float | int | None, decimals: int) -> str:
         if x is None:  # masked
             return ""
         if isinstance(x, float):
@@ -174,6 +206,10 @@ def _write_slow(path: str | os.PathLike, columns: dict[str, np.ndarray], decimal
         return str(int(x))
 
     lists = [np.ma.asarray(c).tolist() for c in columns.values()]
+    decs = _per_column(decimals, len(lists))
     text = ",".join(columns) + "\n"
-    text += "".join(",".join(cell(x) for x in row) + "\n" for row in zip(*lists, strict=True))
+    text += "".join(
+        ",".join(cell(x, k) for x, k in zip(row, decs, strict=True)) + "\n"
+        for row in zip(*lists, strict=True)
+    )
     return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
