@@ -588,3 +588,24 @@ def test_cli_study_stopped_by_signals_says_so_and_resumes(tmp_path, signals, sta
     assert 1 <= stored < 2000
     resumed = run_study(out, trials=stored + 3, config=CONFIG, workers=1)
     assert resumed.ran >= 3 and [r.index for r in resumed.results] == list(range(stored + 3))
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+def test_sigterm_while_the_outputs_are_written_lets_them_finish(tmp_path, monkeypatch):
+    """SIGTERM while the four outputs were written ended the process there, silently:
+    now they are finished first (a second or two), then the signal ends the study."""
+    from cascal import study
+    from cascal.pool import Terminated
+
+    write = study._write_outputs
+
+    def terminated_meanwhile(*args):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return write(*args)
+
+    monkeypatch.setattr(study, "_write_outputs", terminated_meanwhile)
+    with pytest.raises(Terminated):
+        run_study(tmp_path, trials=2, config=CONFIG, workers=1)
+    assert len((tmp_path / "trials.csv").read_text().splitlines()) == 3
+    assert (tmp_path / "cost_distribution.svg").exists()
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL

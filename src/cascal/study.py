@@ -134,7 +134,8 @@ def run_study(
         if client is not None:
             client.close()  # disconnect only: the cluster belongs to the user
             client = None
-        summary = _write_outputs(folder, results, config)
+        with deferred_signals():  # a second or two: the four outputs, then the signal
+            summary = _write_outputs(folder, results, config)
     finally:  # the folder's lock is held until its outputs are written
         db.close()
         if client is not None:
