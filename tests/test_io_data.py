@@ -394,6 +394,16 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
             "X_Value\ttestbed\treference\n0\t0.1\t0.1\n1\t0.5\t0.5\n2\t0.9\t0.9\n",
             "header looks like row 5 ('X_Value\\ttestbed\\treference'): delete the lines above",
         ),
+        # a documentation review's cases: one-column files and blocks of two-cell lines
+        ("# instrument XYZ\nreading\n0.1\n0.2\n", "header looks like row 2 ('reading')"),
+        (
+            "Instrument,XL80\nDate,2024-01-01\nOperator,Smith\ntestbed,reference\n0.1,0.1\n",
+            "'Instrument,XL80' is not the header: the header looks like row 4",
+        ),
+        ("Instrument XL80\nreading\n0.1\n0.2\n", "if row 2 is the header, delete row 1"),
+        ("reading\n[mm]\n0.1\n0.2\n", "row 2: expected numbers, got '[mm]': a row of units"),
+        ("# run 7\ntestbed,reference\nmm,mm\n0.1,0.1\n", "row 2 ('testbed,reference'): de"),
+        ("reading\n0.1_16\n0.2\n", "column 'reading': expected a number, got '0.1_16'\n"),
     ],
     ids=[
         "decimal_comma",
@@ -407,12 +417,18 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
         "excel_separator_line",
         "comment_line",
         "instrument_header_block",
+        "comment_above_one_column",
+        "block_of_two_cell_lines",
+        "line_or_units_above_one_column",
+        "units_row_of_one_column",
+        "comment_then_units_row",
+        "typo_in_first_row_of_one_column",
     ],
 )
 def test_spreadsheet_habits_get_a_hint(tmp_path, text, hint):
     """A user review's cases: the message named the cell but not the likely cause."""
     p = _write(tmp_path, text)
-    reader = read_readings if text.startswith("reading\n") else read_stage
+    reader = read_stage if "testbed" in text else read_readings
     with pytest.raises(InputError) as exc:
         reader(p)
     assert hint.rstrip("\n") in str(exc.value)

@@ -326,8 +326,10 @@ def read_readings(path: str | os.PathLike, *, column: str | None = None) -> Tabl
 
 def _check_preamble(text: str, first: str, width: int, name: str) -> None:
     """Refuse lines above the header that a spreadsheet or an instrument writes: Excel's
-    ``sep=;`` line, or comments and a header block whose first line is one cell where
-    ``width`` columns are wanted (a later line of as many cells is named)."""
+    ``sep=;`` line, comments and header blocks (the header, the nearest row of ``width``
+    cells above the first row of numbers that is not one of units, is named); where two
+    rows of text could be a line above the header or a header and a row of units, name
+    both readings."""
     line = first.strip()
     if re.fullmatch(r'"?sep=.?"?,*;*', line, flags=re.IGNORECASE):
         raise InputError(
@@ -336,23 +338,68 @@ def _check_preamble(text: str, first: str, width: int, name: str) -> None:
             file=name,
             row=1,
         )
-    if width < 2 or _widest(first) >= width:
-        return
     lines = text[:65536].split("\n")[:400]
-    for k, later in enumerate(lines[1:], start=2):  # the first row of numbers only ...
-        cells = [c for c in _split(later) if c.strip()]
-        if len(cells) >= width and all(_is_value(c) for c in cells):
-            # ... and the header: the nearest row above it of as many cells
-            j = next((j for j in range(k - 1, 1, -1) if _widest(lines[j - 1]) >= width), None)
-            if j is not None:
-                raise InputError(
-                    f"{line[:60]!r} is one cell where a header of {width} columns is due; "
-                    f"the header looks like row {j} ({lines[j - 1].strip()[:60]!r}): delete "
-                    "the lines above it (comments, or an instrument's header block)",
-                    file=name,
-                    row=1,
-                )
-            return
+    numbers = next(  # the first row of numbers (1-based), where one comes soon
+        (
+            k
+            for k, later in enumerate(lines, start=1)
+            if len(cells := [c for c in _split(later) if c.strip()]) >= width
+            and all(_is_value(c) for c in cells)
+        ),
+        None,
+    )
+    above = [j for j in range(1, numbers or 0) if lines[j - 1].strip()]
+    if len(above) < 2 or any(_numberish(lines[j - 1]) for j in above):
+        return  # (a row of numbers with a typo: the rows below name it)
+    # the header: the nearest row above the numbers of as many cells, not one of units
+    header = next(
+        (j for j in reversed(above) if _widest(lines[j - 1]) >= width and not _units(lines[j - 1])),
+        None,
+    )
+    if header is None or header == above[0]:
+        return  # a header, then rows of units or stray text: the rows below name them
+    named = f"the header looks like row {header} ({lines[header - 1].strip()[:60]!r})"
+    if len(above) > 2 or line.startswith(_COMMENTS) or _widest(first) < width:
+        raise InputError(
+            f"{line[:60]!r} is not the header: {named}: delete the lines above it (comments, "
+            "or an instrument's header block)",
+            file=name,
+            row=1,
+        )
+    raise InputError(
+        f"rows 1 and {header} are both text above the first numbers ({line[:60]!r}, then "
+        f"{lines[header - 1].strip()[:60]!r}): if row {header} is the header, delete row 1 "
+        f"(a comment, an instrument's line); if row {header} holds units, delete it",
+        file=name,
+        row=1,
+    )
+
+
+#: How comment lines above a header begin.
+_COMMENTS = ("#", "//", "%", ";", "!")
+#: A cell naming a unit: mm, [mm], (deg), µm, arcsec, counts ... (brackets: anything short).
+_UNIT = re.compile(
+    r"\s*(?:[\[(].{0,12}[\])]|(?:[pnuµμmck]?(?:m|rad|s|v|hz)|deg|degrees?|°|arc ?(?:sec|min)"
+    r"|[\"']|in|inch(?:es)?|counts?|cts|%|-|unit(?:s|less)?|lsb|steps?|mm/s|rpm)\.?)\s*",
+    re.IGNORECASE,
+)
+
+
+def _numberish(line: str) -> bool:
+    """Whether every non-empty cell of ``line`` begins as a number does (a typo further on)."""
+    cells = [c for c in _split(line) if c.strip()]
+    return bool(cells) and all(_begins_as_number(c) for c in cells)
+
+
+def _begins_as_number(cell: str) -> bool:
+    """``0.1_16``, ``1O``, a fullwidth ``０.５``: a number mistyped, not a word."""
+    return re.match(r"\s*[-+]?[.\d]", cell) is not None
+
+
+def _units(line: str) -> bool:
+    """Whether every non-empty cell of ``line`` names a unit."""
+    cells = [c for c in _split(line) if c.strip()]
+    return bool(cells) and all(_UNIT.fullmatch(c) for c in cells)
 
 
 def _split(line: str) -> list[str]:
@@ -557,7 +604,7 @@ def _slow(
                 file=name,
                 row=row,
             )
-        if not out and all(_is_text(cells[j]) for j in idx):
+        if not out and all(_is_text(cells[j]) and not _begins_as_number(cells[j]) for j in idx):
             got = ", ".join(repr(cells[j].strip()) for j in idx)
             later = next(
                 (c for c in reader if len(c) > max(idx) and all(_is_value(c[j]) for j in idx)),
