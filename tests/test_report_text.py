@@ -93,3 +93,25 @@ def test_the_correction_figure_marks_the_arc_a_rotary_device_left_out():
     assert any(abs(x - start) < 1e-9 for x in spans)
     full = fit_model(demo_stages(case), kernel="periodic", period=360.0, n_restarts=1)
     assert correction_curve(full).arc is None
+
+
+def test_exclude_spec_writes_runs_of_rows_as_ranges():
+    """A documentation review's case: 98 rows beyond the range were suggested to
+    ``--exclude`` one by one (``104,105,...,201``); runs of three or more are ranges now,
+    which ``--exclude`` reads back as the same rows."""
+    from hypothesis import given
+    from hypothesis import strategies as st
+
+    from cascal.cli import _row_numbers
+    from cascal.text import exclude_spec
+
+    assert exclude_spec("d.csv", range(104, 202)) == "d.csv:104-201"
+    assert exclude_spec("d.csv", [9, 5, 3, 4, 10, 12, 13, 14]) == "d.csv:3-5,9,10,12-14"
+    assert exclude_spec("my d.csv", [7]) == "'my d.csv:7'"
+
+    @given(st.sets(st.integers(2, 60), min_size=1))
+    def round_trip(rows):
+        spec = exclude_spec("f.csv", rows)
+        assert _row_numbers(spec.split(":", 1)[1], spec) == rows
+
+    round_trip()

@@ -26,10 +26,18 @@ HOMOSCEDASTIC_U = (
 
 
 def exclude_spec(file: str, rows) -> str:
-    """``FILE:ROWS`` of ``--exclude``, quoted for a shell where it needs it."""
+    """``FILE:ROWS`` of ``--exclude``, quoted for a shell where it needs it; three or more
+    consecutive rows as a range (``104-201``)."""
     import shlex
 
-    return shlex.quote(f"{file}:{','.join(str(int(r)) for r in rows)}")
+    rows = sorted({int(r) for r in rows})
+    parts, start = [], 0
+    for i in range(1, len(rows) + 1):
+        if i == len(rows) or rows[i] != rows[i - 1] + 1:  # the end of a run
+            run = rows[start:i]
+            parts += [f"{run[0]}-{run[-1]}"] if len(run) > 2 else [str(r) for r in run]
+            start = i
+    return shlex.quote(f"{file}:{','.join(parts)}")
 
 
 def range_text(lo: float, hi: float, digits: int = 9) -> str:
