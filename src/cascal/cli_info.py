@@ -80,8 +80,13 @@ def _cmd_info(args: argparse.Namespace) -> int:
         status, path = input_status(src.file, src.sha256, Path(args.model).parent)
         where = f" (as {path})" if path is not None and str(path) != src.file else ""
         print(f"  input {src.file} (columns {', '.join(src.columns)}): {status}{where}")
-        if status == "changed since the fit":
+        if status == "unchanged":
+            print(f"    SHA-256 {src.sha256}")
+        elif status == "changed since the fit":
+            print(f"    SHA-256 {src.sha256} at the fit, {file_sha256(path)} now")
             changed.append(str(path))
+        else:
+            print(f"    SHA-256 {src.sha256} at the fit")
     s = summarize_device(model)
     u = s["max_u"]
     largest = "no uncertainty (lookup tables)" if u != u else f"largest u {u:.3g} {model.unit}"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 from cli_helpers import run_cascal
@@ -37,6 +38,9 @@ def test_info_prints_what_the_model_holds(linear_model):
         assert lines[i + 1] == f"  log marginal likelihood {lml:.6g}, no jitter"
         src = model.sources[k]
         assert lines[i + 2] == f"  input {src.file} (columns {', '.join(src.columns)}): unchanged"
+        assert (
+            lines[i + 3] == f"    SHA-256 {hashlib.sha256(Path(src.file).read_bytes()).hexdigest()}"
+        )
     # The correction's size, computed here on a grid of the calibrated range.
     lo, hi = model.calibrated_range
     grid = np.linspace(lo, hi, 1001)
@@ -57,6 +61,8 @@ def test_info_says_when_an_input_changed_or_is_gone(linear_files, tmp_path):
     assert res.returncode == 0, res.stderr
     assert f"  input {ref} (columns testbed, reference): not found" in res.stdout
     assert f"  input {dev} (columns device, testbed): changed since the fit" in res.stdout
+    then, now = (load_model(model).sources[1].sha256, hashlib.sha256(dev.read_bytes()).hexdigest())
+    assert f"    SHA-256 {then} at the fit, {now} now\n" in res.stdout and then != now
     assert res.stderr == (
         f"cascal info: warning: {dev} is not the file this model was fitted from (its "
         "SHA-256 differs)\n"
