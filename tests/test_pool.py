@@ -119,13 +119,47 @@ def test_two_ctrl_c_hard_on_each_other_while_waiting_raise_one_interrupt(repeat)
 
 
 def test_sigterm_while_waiting_is_raised_as_terminated():
-    futures = _never_done(1)
-    threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGTERM)).start()
-    with pytest.raises(pool.Terminated):
-        with pool.deferred_signals() as got:
-            for _ in pool.completed(futures, got, poll_s=0.05):
-                pass
-    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    """Where SIGTERM raises Terminated (the command's handler), the wait raises it between
+    waits, and the handler is the command's again after."""
+    signal.signal(signal.SIGTERM, pool.raise_terminated)
+    try:
+        futures = _never_done(1)
+        threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGTERM)).start()
+        with pytest.raises(pool.Terminated):
+            with pool.deferred_signals() as got:
+                for _ in pool.completed(futures, got, poll_s=0.05):
+                    pass
+        assert signal.getsignal(signal.SIGTERM) is pool.raise_terminated
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def test_a_default_sigterm_ends_the_process_by_the_signal_after_the_cleanup(tmp_path):
+    """A review's case: in a program of its own, ``run_study`` turned SIGTERM into a
+    KeyboardInterrupt that the program could catch and go on from (or die of with a
+    traceback and exit 1). Where SIGTERM has its default action, the process now ends by
+    the signal, once the code under way has cleaned up (its workers stopped)."""
+    import subprocess
+
+    script = tmp_path / "term.py"
+    script.write_text(
+        "import os, signal, threading\n"
+        "from concurrent.futures import Future\n"
+        "from cascal import pool\n"
+        "threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGTERM)).start()\n"
+        "try:\n"
+        "    with pool.deferred_signals() as got:\n"
+        "        try:\n"
+        "            for _ in pool.completed([Future()], got, poll_s=0.05):\n"
+        "                pass\n"
+        "        finally:\n"
+        "            print('cleaned up', flush=True)\n"
+        "except KeyboardInterrupt:\n"
+        "    print('caught: the program went on', flush=True)\n"
+    )
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == -signal.SIGTERM, (done.stdout, done.stderr)
+    assert done.stdout == "cleaned up\n" and "Traceback" not in done.stderr
 
 
 def test_completed_yields_in_list_order_and_signals_wait_for_the_caller():

@@ -595,7 +595,7 @@ def test_sigterm_while_the_outputs_are_written_lets_them_finish(tmp_path, monkey
     """SIGTERM while the four outputs were written ended the process there, silently:
     now they are finished first (a second or two), then the signal ends the study."""
     from cascal import study
-    from cascal.pool import Terminated
+    from cascal.pool import Terminated, raise_terminated
 
     write = study._write_outputs
 
@@ -604,8 +604,12 @@ def test_sigterm_while_the_outputs_are_written_lets_them_finish(tmp_path, monkey
         return write(*args)
 
     monkeypatch.setattr(study, "_write_outputs", terminated_meanwhile)
-    with pytest.raises(Terminated):
-        run_study(tmp_path, trials=2, config=CONFIG, workers=1)
+    signal.signal(signal.SIGTERM, raise_terminated)  # (the command's handler)
+    try:
+        with pytest.raises(Terminated):
+            run_study(tmp_path, trials=2, config=CONFIG, workers=1)
+        assert signal.getsignal(signal.SIGTERM) is raise_terminated
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
     assert len((tmp_path / "trials.csv").read_text().splitlines()) == 3
     assert (tmp_path / "cost_distribution.svg").exists()
-    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import signal
 import sys
 import time
 import warnings
@@ -360,7 +361,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     }
     inside = ~out  # far-off readings must not cost the others their decimals
     decimals = auto_decimals([c.reading[inside], c.corrected[inside]], c.u[inside] if gp else None)
-    given = exact_decimals(c.reading[inside], decimals)  # the readings as read, not rounded
+    given, exact = exact_decimals(c.reading, decimals)  # the readings as read, not rounded
     path = write_columns(args.output, columns, decimals=[given] + [decimals] * 3 + [0])
     if n_out:
         first = int(table.rows[np.argmax(out)])
@@ -377,7 +378,9 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     if not gp:
         warn("correct", "method lut gives no uncertainty: columns u and U are left empty")
     what = "reading" if out.size == 1 else "readings"
-    as_read = f"; readings as read, {given}" if given > decimals else ""
+    as_read = ""
+    if given > decimals:
+        as_read = f"; readings as read, {given}" if exact else f"; readings {given}"
     print(f"Corrected {out.size} {what} -> {path} ({decimals} decimals{as_read})")
     return 0
 
@@ -1061,14 +1064,32 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cascal`` console script; returns the exit status."""
+    from .pool import Terminated, ignore_interrupts, raise_terminated
+
+    if _main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, raise_terminated)  # as Ctrl-C: outputs left whole
     try:  # Ctrl-C while the subcommands' modules load (NumPy, SciPy: a few tenths of a s)
         return _main(argv)
-    except KeyboardInterrupt:  # a further Ctrl-C as it exits: status 130 all the same
-        from .pool import ignore_interrupts
-
-        ignore_interrupts()
+    except KeyboardInterrupt as exc:  # a further Ctrl-C as it exits: status 130 all the same
+        _stop_listening(ignore_interrupts)
+        if isinstance(exc, Terminated):
+            print("cascal: terminated", file=sys.stderr)
+            return EXIT_TERMINATED
         print("cascal: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def _main_thread() -> bool:
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+def _stop_listening(ignore_interrupts: Callable[[], None]) -> None:
+    """Ignore further Ctrl-C and SIGTERM: the command is ending with its message."""
+    ignore_interrupts()
+    if _main_thread():
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def _main(argv: Sequence[str] | None) -> int:
@@ -1110,7 +1131,7 @@ def _main(argv: Sequence[str] | None) -> int:
     except KeyboardInterrupt as exc:
         from .pool import Terminated, ignore_interrupts
 
-        ignore_interrupts()
+        _stop_listening(ignore_interrupts)
         what = "terminated" if isinstance(exc, Terminated) else "interrupted"
         detail = f" ({exc})" if str(exc) else ""
         print(f"cascal {args.command}: {what}{detail}", file=sys.stderr)

@@ -24,7 +24,15 @@ _MASKS = hasattr(signal, "pthread_sigmask")
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM (``kill``, a batch system's end of a job), taken as a Ctrl-C is."""
+    """SIGTERM (``kill``, a batch system's end of a job), taken as a Ctrl-C is: raised where
+    :func:`raise_terminated` handles SIGTERM (the ``cascal`` command), and inside
+    :func:`deferred_signals`, which ends the process by the signal after all where SIGTERM
+    had its default action."""
+
+
+def raise_terminated(signum, frame) -> None:
+    """A SIGTERM handler: raise :class:`Terminated` (the command's, from its start)."""
+    raise Terminated
 
 
 def _main_thread() -> bool:
@@ -97,31 +105,43 @@ def shutdown(pool: ProcessPoolExecutor, *, wait_for_tasks: bool, interrupted: bo
 @contextlib.contextmanager
 def deferred_signals() -> Iterator[list[int]]:
     """Within: SIGINT and SIGTERM are recorded in the list this yields instead of acting at
-    once (only where they would raise KeyboardInterrupt and end the process: the default
-    handlers, in the main thread). :func:`raise_signals` raises them where the caller
-    chooses; any left at the end are raised there, unless an exception is under way."""
+    once (only where they would end the process or the command: the default handlers, and
+    :func:`raise_terminated`; in the main thread). :func:`raise_signals` raises them where
+    the caller chooses; any left at the end are raised there, unless an exception is under
+    way. A SIGTERM whose action was the default is delivered again on leaving, once the
+    handlers are restored: the process then ends by it, as it would have, its workers
+    stopped first."""
     got: list[int] = []
     if not _main_thread():
         yield got
         return
-    defaults = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
+    ours = {
+        signal.SIGINT: (signal.default_int_handler,),
+        signal.SIGTERM: (signal.SIG_DFL, raise_terminated),
+    }
     previous = {}
-    for signum, default in defaults.items():
-        if signal.getsignal(signum) is default:
+    for signum, handlers in ours.items():
+        if signal.getsignal(signum) in handlers:
             previous[signum] = signal.signal(signum, lambda signum, frame: got.append(signum))
     try:
         yield got
+        raise_signals(got)
+    except Terminated:
+        if previous.get(signal.SIGTERM) is signal.SIG_DFL:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+            signal.raise_signal(signal.SIGTERM)  # (the process ends here)
+        raise
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    raise_signals(got)
 
 
 def raise_signals(got: list[int]) -> None:
-    """Raise what :func:`deferred_signals` recorded: :class:`Terminated` where the first
-    was SIGTERM, KeyboardInterrupt where it was SIGINT; nothing where none came."""
+    """Raise what :func:`deferred_signals` recorded: :class:`Terminated` where SIGTERM came,
+    else KeyboardInterrupt where SIGINT did; nothing where none came."""
     if got:
-        raise Terminated if got[0] == signal.SIGTERM else KeyboardInterrupt
+        raise Terminated if signal.SIGTERM in got else KeyboardInterrupt
 
 
 def completed(futures: list[Future], got: list[int], poll_s: float = 0.2) -> Iterator[Future]:

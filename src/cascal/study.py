@@ -225,27 +225,34 @@ def _execute(config, chunks, executor, n_workers):
     failed = True
     with deferred_signals() as got:  # Ctrl-C and SIGTERM between waits, not inside one
         try:
-            if pool is not None:
-                futures = submit_all(pool, run_chunk, calls)
-            else:
-                futures = [executor.submit(run_chunk, *call) for call in calls]
-            for fut in completed(futures, got):
-                try:
-                    results = fut.result()
-                except (CancelledError, BrokenExecutor) as exc:  # a worker killed, a lost cluster
-                    raise_signals(got)  # (by the signal that stops the command: say that)
-                    raise WorkerError(f"lost the workers ({_named(exc)})") from None
-                except Exception as exc:
-                    if type(exc).__module__.split(".")[0] != "distributed":
-                        raise
-                    raise WorkerError(f"the Dask cluster failed ({_named(exc)})") from None
-                yield results
+            try:
+                if pool is not None:
+                    futures = submit_all(pool, run_chunk, calls)
+                else:
+                    futures = [executor.submit(run_chunk, *call) for call in calls]
+                for fut in completed(futures, got):
+                    yield _result(fut)
+            except Exception:  # a signal that struck the workers too (a process group's)
+                raise_signals(got)  # ends the command as that signal, not as their failure
+                raise
             failed = False
         finally:
             for f in futures:
                 f.cancel()
             if pool is not None:  # interrupted: the chunks under way run again on resuming
                 shutdown(pool, wait_for_tasks=not failed, interrupted=failed)
+
+
+def _result(fut: Future) -> list[TrialResult]:
+    """A chunk's results; a lost worker or cluster is a WorkerError."""
+    try:
+        return fut.result()
+    except (CancelledError, BrokenExecutor) as exc:  # a worker killed, a lost cluster
+        raise WorkerError(f"lost the workers ({_named(exc)})") from None
+    except Exception as exc:
+        if type(exc).__module__.split(".")[0] != "distributed":
+            raise
+        raise WorkerError(f"the Dask cluster failed ({_named(exc)})") from None
 
 
 def _named(exc: BaseException) -> str:

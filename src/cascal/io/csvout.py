@@ -48,24 +48,28 @@ def auto_decimals(values: Sequence[np.ndarray], u: np.ndarray | None = None) -> 
     return int(min(max(k, 0), 17))
 
 
-def exact_decimals(values: np.ndarray, least: int) -> int:
-    """The fewest decimals, at least ``least``, with which every finite value of
-    ``values`` (any shape) is written back exactly (its text reads as the same float):
-    for echoing readings as they were read, whose file may keep more decimals than the
-    corrections need. Where none up to 17 (or up to where ``|value| * 10**decimals``
-    reaches 2^53, see :func:`format_columns`) does, the most there; ``least`` where that
-    is fewer."""
+def exact_decimals(values: np.ndarray, least: int) -> tuple[int, bool]:
+    """The fewest decimals, at least ``least``, with which every finite value of ``values``
+    (any shape) is written back exactly (its text reads as the same float), and True; for
+    echoing readings as they were read, whose file may keep more decimals than the
+    corrections need. Where none does up to 17, or up to where ``|value| * 10**decimals``
+    reaches 2^50 (16 and 17 significant digits: from 2^51 on, :func:`format_columns`
+    leaves every cell to Python's slow formatting), the most that keep ``|value| *
+    10**decimals`` below 2^46 (beyond, values that are not exact lie near a half-way point
+    too often for its fast path), and False; ``least`` and False where that is fewer."""
     a = np.abs(np.asarray(values, dtype=float))
     a = a[np.isfinite(a)]
     best = least
     for k in range(least, 18):
         q = np.rint(a * 10.0**k)
-        if q.size and float(q.max()) >= 2.0**53:
+        top = float(q.max()) if q.size else 0.0
+        if top >= 2.0**50:
             break
-        best = k
         if np.array_equal(q / 10.0**k, a):  # (q exact, 10^k exact: one correct rounding)
-            break
-    return best
+            return k, True
+        if top < 2.0**46:
+            best = k
+    return best, False
 
 
 def format_columns(columns: Sequence[np.ndarray], decimals: int | Sequence[int]) -> bytes | None:
