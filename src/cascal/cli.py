@@ -1066,7 +1066,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cascal`` console script; returns the exit status."""
     from .pool import Terminated, ignore_interrupts, raise_terminated
 
-    if _main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+    own = _main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    if own:
         signal.signal(signal.SIGTERM, raise_terminated)  # as Ctrl-C: outputs left whole
     try:  # Ctrl-C while the subcommands' modules load (NumPy, SciPy: a few tenths of a s)
         return _main(argv)
@@ -1077,6 +1078,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_TERMINATED
         print("cascal: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:  # (main called in a program of its own: its SIGTERM as it was)
+        if own and signal.getsignal(signal.SIGTERM) in (raise_terminated, signal.SIG_IGN):
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def _main_thread() -> bool:

@@ -93,6 +93,11 @@ def run_study(
         executor: Any executor to run on instead (takes precedence).
         chunk: Trials per task (default: about 8 tasks per worker, at most 50 trials).
         progress: Called as ``progress(done, total)`` after every finished task.
+
+    Ctrl-C stops the workers and raises KeyboardInterrupt (the trials stored stay). So
+    does SIGTERM where a handler of :mod:`cascal.pool` raises
+    :class:`~cascal.pool.Terminated` for it (the ``cascal`` command's); where it has its
+    default action, the process ends by it once the workers are stopped.
     """
     config = config or StudyConfig()
     if int(trials) < 1 or (workers is not None and int(workers) < 1):
