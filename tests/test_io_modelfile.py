@@ -594,3 +594,28 @@ def test_writes_together_are_all_or_none(tmp_path):
         atomic.write_text(b, "outer b")
     assert (a.read_text(), b.read_text()) == ("alone", "outer b")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.png", "full.png"]
+
+
+def test_stages_with_a_known_noise_of_any_diagonal_form_are_saved(tmp_path):
+    """An API review's case: a Stage whose known noise was an (n, n) matrix or a Noise
+    object fitted, then failed in save_model with NumPy's own error. A diagonal one is
+    now kept as one variance per reading; one with correlations, which a model file
+    cannot keep, is refused by name before anything is written."""
+    from cascal import CalibrationModel, Cascade, Dense, Diagonal, Stage, load_model, save_model
+    from cascal.simulation import simulate_trial
+
+    trial = simulate_trial(np.random.default_rng(0))
+    (tb, ref), (dev, tbd) = trial.d2, trial.d1
+    n = tb.size
+    r = np.linspace(dev.min(), dev.max(), 9)
+    for noise in (np.eye(n) * 1e-12, Diagonal(1e-12), Dense(np.eye(n) * 1e-12)):
+        cascade = Cascade([Stage(tb, ref, noise=noise, name="testbed"), (dev, tbd)])
+        fitted = cascade.fit()
+        model = CalibrationModel.from_cascade(cascade, fitted)
+        back = load_model(save_model(tmp_path / "m.json", model))
+        assert np.array_equal(back.data[0].noise, np.full(n, 1e-12))
+        assert np.array_equal(back.fitted.correct(r), fitted.correct(r))
+    corr = 1e-12 * np.exp(-(np.subtract.outer(tb, tb) ** 2) / 0.01)
+    cascade = Cascade([Stage(tb, ref, noise=corr, name="testbed"), (dev, tbd)])
+    with pytest.raises(InputError, match="stage 'testbed': its known noise has correlations"):
+        CalibrationModel.from_cascade(cascade, cascade.fit())

@@ -236,6 +236,54 @@ def test_averaged_repeats_learn_the_noise_of_positions_read_once():
         assert fit_gp(r.x, r.y, noise=zero, hyperparameters=hp).noise_variance == 0.0
 
 
+def test_averaged_readings_none_repeated_learn_the_noise_too():
+    """An API review's case: where no position was read twice (or every repeat agreed),
+    aggregate_repeats gives all zeros, which fit_gp took as exact readings: u about a
+    seventh of the error. Zeros in a vector now leave the noise to learn wherever they lie;
+    the number noise=0 and learn_noise=False still interpolate."""
+    from cascal import aggregate_repeats
+
+    rng = np.random.default_rng(1)
+    x = np.linspace(0, 1, 25)
+    truth = lambda t: t + 1e-4 * np.sin(6 * t)  # noqa: E731
+    y = truth(x) + 2e-6 * rng.standard_normal(x.size)
+    r = aggregate_repeats(x, y)
+    assert not np.any(r.noise)
+    plain, averaged = fit_gp(x, y), fit_gp(r.x, r.y, noise=r.noise)
+    assert averaged.noise_variance == pytest.approx(plain.noise_variance, rel=1e-3)
+    assert averaged.noise_variance > 1e-13  # (the true 4e-12; 0 before)
+    lml = plain.log_marginal_likelihood
+    assert averaged.log_marginal_likelihood == pytest.approx(lml, abs=1e-6)
+    assert fit_gp(r.x, r.y, noise=0.0).noise_variance == 0.0
+    assert fit_gp(r.x, r.y, noise=r.noise, learn_noise=False).noise_variance == 0.0
+
+
+@pytest.mark.parametrize("period", [None, 1.0])
+def test_a_position_repeated_exactly_is_refused_where_the_noise_is_learned(period):
+    """An API review's case: one (x, y) pair given twice made the learned noise's
+    likelihood grow without bound as the noise went to 0: the fit took the noise as
+    signal (u 10 times below the error). Such a pair is now refused with the remedy, as
+    contradicting ones are; so is a periodic kernel's pair one turn apart with the same
+    correction. With a known noise at the pair, or given hyperparameters, it stays."""
+    x = np.array([0.0, 0.2, 0.35, 0.5, 0.65, 0.8])
+    y = x + 0.01 * np.sin(2 * np.pi * x)
+    other = x[1] + (0.0 if period is None else 360 * period)  # 360 turns on: 360.2
+    x, y = np.r_[x, other], np.r_[y, other + (y[1] - x[1])]  # the same correction y - x
+    kw = {"mean": "identity"}
+    if period is not None:
+        kw.update(kernel="periodic", period=period)
+    with pytest.raises(InputError, match=r"at indices 1 and 6 .*aggregate_repeats"):
+        fit_gp(x, y, **kw)
+    with pytest.raises(InputError, match=r"at indices 1 and 6"):
+        Cascade([(x, y)], kernel=kw.get("kernel", "se"), period=period).fit()
+    noisy = np.full(x.size, 1e-8)
+    assert np.isfinite(fit_gp(x, y, noise=noisy, learn_noise=True, **kw).noise_variance)
+    if period is not None:  # a turn apart with another correction: two readings of it
+        y2 = y.copy()
+        y2[-1] += 1e-5
+        assert fit_gp(x, y2, **kw).noise_variance > 0
+
+
 def test_api_misuse_is_an_input_error():
     """A review's cases: these escaped as NumPy's or Python's own errors (or a misleading
     NumericalError), and seed -1 was taken by table-started fits but refused by others."""

@@ -179,3 +179,22 @@ def test_rotary_readings_many_turns_away_are_corrected_as_their_angle():
     assert huge.out_of_range.all() and np.all(np.isfinite(huge.corrected))
     with pytest.raises(InputError, match="readings: expected finite values, got inf"):
         correct(model, [np.inf, 5.0])
+
+
+def test_verify_model_refuses_a_missing_reference_value():
+    """An API review's case: a NaN among the reference values (a blank cell) made every
+    figure of the verification NaN, silently. It is refused by index, as a NaN reading is."""
+    from cascal import CalibrationModel, Cascade
+    from cascal.simulation import simulate_trial
+    from cascal.workflow import verify_model
+
+    trial = simulate_trial(np.random.default_rng(0))
+    cascade = Cascade([trial.d2, trial.d1])
+    model = CalibrationModel.from_cascade(cascade, cascade.fit())
+    r = np.linspace(0.2, 0.8, 20)
+    reference = model.fitted.correct(r)
+    reference[-1] = np.nan
+    with pytest.raises(InputError, match="reference: expected finite values, got nan at index 19"):
+        verify_model(model, r, reference)
+    with pytest.raises(InputError, match="expected the same length, got 20 and 19"):
+        verify_model(model, r, reference[:-1])

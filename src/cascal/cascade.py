@@ -20,7 +20,7 @@ import numpy as np
 
 from .baselines import OffsetTable, fit_table
 from .errors import CascalError, InputError
-from .gp import FittedGP, fit_gp
+from .gp import FittedGP, fit_gp, single_threaded_blas
 from .kernels import Kernel, make_kernel
 from .means import make_mean
 from .noise import Dense, Noise, as_noise
@@ -175,6 +175,10 @@ class Cascade:
         """
         if self.method == "lut":
             return self._fit_tables()
+        with single_threaded_blas():  # the same numbers whatever BLAS's threads (a review:
+            return self._fit_gps(first)  # a sum kernel's stage 1 moved with two threads)
+
+    def _fit_gps(self, first: FittedGP | None) -> FittedCascade:
         models: list[FittedGP] = []
         used: list[Stage] = []
         for k, stage in enumerate(self.stages):

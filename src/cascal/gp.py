@@ -367,10 +367,12 @@ def fit_gp(
             an (n, n) covariance (known, plus a learned scalar), or a Noise.
         learn_noise: Learn a white-noise variance (one, for all readings) on top of
             ``noise``; default: learn it unless ``noise`` is a number or a vector, except a
-            vector with zeros among positive variances, as
-            :func:`~cascal.validation.aggregate_repeats` gives (0 for a position read
-            once): its zeros say nothing of those readings' noise. ``noise=0`` (or all
-            zeros) interpolates exactly.
+            vector with zeros, as :func:`~cascal.validation.aggregate_repeats` gives (0 for
+            a position read once, so all zeros where none repeats): its zeros say nothing of
+            those readings' noise. ``noise=0`` (a number), or a vector with
+            ``learn_noise=False``, interpolates exactly. With a learned noise, a position
+            read twice with the same correction and no known noise (or a periodic kernel's
+            angle so, a turn apart) is refused: average repeats first.
         hyperparameters: Given values by name (``length_scale``, ``variance``,
             ``noise_variance``, ...); nothing is optimised.
         n_restarts: Local optimiser starts: the best local maxima of a likelihood table
@@ -415,11 +417,21 @@ def _fit_gp(
     m = make_mean(mean, ya, xa)
     known = as_noise(noise, n)
     if learn_noise is None:
-        # zeros among positive variances (aggregate_repeats gives 0 to a position read
-        # once) say nothing of those readings' noise: learn one white noise for all
-        learn_noise = known is None or not known.is_diagonal or _some_zero(known.diagonal(n))
+        # zeros among the variances (aggregate_repeats gives 0 to a position read once, and
+        # to every position where none repeats) say nothing of those readings' noise:
+        # learn one white noise for all; noise=0, a number, interpolates exactly, and so do
+        # given hyperparameters without a noise_variance
+        number = np.ndim(noise) == 0 and not isinstance(noise, Noise)
+        unknown = hyperparameters is None or "noise_variance" in hyperparameters
+        learn_noise = (
+            known is None
+            or not known.is_diagonal
+            or (not number and unknown and bool(np.any(known.diagonal(n) == 0.0)))
+        )
     if known is None and not learn_noise:
         raise InputError("noise: with learn_noise=False a known noise must be given")
+    if learn_noise and hyperparameters is None:
+        _check_no_exact_repeats(xa, ya, ya - m(xa), known, getattr(kern, "period", None), names)
     r = ya - m(xa)
     if hyperparameters is None and not np.any(r) and known is None:
         raise InputError(
@@ -767,9 +779,41 @@ def _restrict(noise: Noise, idx: np.ndarray, n: int) -> Noise:
     return Dense(noise.dense(n)[np.ix_(idx, idx)], atol=np.inf)
 
 
-def _some_zero(v: np.ndarray) -> bool:
-    """Zeros among positive variances ``v`` (n,)."""
-    return bool(np.any(v == 0.0) and np.any(v > 0.0))
+def _check_no_exact_repeats(
+    x: np.ndarray,
+    y: np.ndarray,
+    r: np.ndarray,
+    known: Noise | None,
+    period: float | None,
+    names: tuple[str, str],
+) -> None:
+    """Refuse a position read twice with the same correction ``r`` and no known noise
+    (contradicting targets are refused before), or so at the same angle of a periodic
+    kernel's turn: the learned noise's likelihood then grows without bound as that noise
+    goes to 0, and the fit reads the noise as signal (a review: 12 readings with one pair
+    repeated ended with u 10 times below the error). ``x``, ``y``, ``r``: shape (n,);
+    angles and corrections agree to 12 digits (of a turn, of the targets)."""
+    key = x
+    if period is not None:  # the angle in turns, to 12 digits (360.2 is 0.2 a turn on)
+        key = np.round(np.mod(x, period) / period, 12)
+        key[key == 1.0] = 0.0
+    order = np.lexsort((r, key))
+    k0, r0, y0 = key[order], r[order], np.abs(y[order])
+    close = np.abs(r0[1:] - r0[:-1]) <= 1e-12 * np.maximum(y0[1:], y0[:-1])
+    same = np.flatnonzero((k0[1:] == k0[:-1]) & close)
+    if not same.size:
+        return
+    var = np.zeros(x.size) if known is None else known.diagonal(x.size)
+    for k in same:
+        i, j = sorted((int(order[k]), int(order[k + 1])))
+        if var[i] == 0.0 or var[j] == 0.0:
+            where = "position" if period is None else f"angle (period {period:g})"
+            raise InputError(
+                f"{names[0]}: the same {where} at indices {i} and {j} ({float(x[i])!r} and "
+                f"{float(x[j])!r}), with no known noise: a learned noise would take the pair "
+                "as noise-free; average repeated readings (cascal.aggregate_repeats) so "
+                "they become one point with a known noise variance"
+            )
 
 
 def _below_floor(b: np.ndarray) -> np.ndarray:

@@ -622,9 +622,15 @@ def verify_model(
     left out of the statistics; see :func:`cascal.verification.verify` for the rest.
     """
     c = correct(model, reading)
+    ref = as_positions(reference, "reference")  # (a NaN had made every figure NaN)
+    if ref.shape != c.reading.shape:
+        raise InputError(
+            f"reading and reference: expected the same length, got {c.reading.size} and "
+            f"{ref.size}"
+        )
     return verify(
         c.reading,
-        np.asarray(reference, dtype=float),
+        ref,
         c.corrected,
         c.u,
         inside=~c.out_of_range,

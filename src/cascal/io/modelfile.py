@@ -31,7 +31,7 @@ from ..errors import CascalError, InputError, ModelFileError
 from ..gp import FittedGP, restore_bounds
 from ..kernels import Constant, Kernel, Matern32, Matern52, Periodic, Product, SquaredExp, Sum
 from ..means import Mean
-from ..noise import Dense, Diagonal, Noise, NoiseSum
+from ..noise import Dense, Diagonal, Noise, NoiseSum, as_noise
 from ..optimize import OptimResult, Start
 from .atomic import write_text
 from .data import Source
@@ -110,7 +110,7 @@ class CalibrationModel:
         kernel = cascade.kernel if isinstance(cascade.kernel, str) else repr(cascade.kernel)
         return cls(
             fitted,
-            cascade.stages,
+            tuple(_per_reading(st) for st in cascade.stages),
             tuple(np.ones(st.x.size, np.int64) for st in cascade.stages),
             sources,
             unit,
@@ -138,6 +138,26 @@ class CalibrationModel:
         """True for a periodic kernel: the model corrects every turn (less any arc its device
         readings left out: :func:`cascal.workflow.unmeasured_arc`)."""
         return self.period is not None
+
+
+def _per_reading(stage: Stage) -> Stage:
+    """``stage`` with its known noise as one variance per reading, as a model file keeps
+    it (a number, a diagonal matrix or :class:`~cascal.noise.Diagonal`); InputError for a
+    noise with correlations, which a model file cannot keep."""
+    if stage.noise is None or np.ndim(stage.noise) == 1:
+        return stage
+    n = stage.x.size
+    noise = as_noise(stage.noise, n)
+    if noise is not None and not noise.is_diagonal:
+        dense = noise.dense(n)
+        if np.count_nonzero(dense - np.diag(np.diag(dense))):
+            raise InputError(
+                f"stage {stage.name!r}: its known noise has correlations between readings, "
+                "which a model file cannot keep (one variance per reading): save a model of "
+                "stages whose noise is a number or an (n,) vector of variances"
+            )
+    diag = np.zeros(n) if noise is None else noise.diagonal(n)
+    return Stage(stage.x, stage.y, np.array(diag, dtype=float), stage.name)
 
 
 def save_model(path: str | os.PathLike, model: CalibrationModel) -> Path:
