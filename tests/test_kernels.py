@@ -251,7 +251,7 @@ def test_make_kernel_errors():
     ],
 )
 def test_invalid_hyperparameters_refused(build):
-    with pytest.raises(ValueError, match="positive and finite, got"):
+    with pytest.raises(ValueError, match="positive and finite number, got"):
         build()
 
 

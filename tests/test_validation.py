@@ -308,3 +308,41 @@ def test_api_misuse_is_an_input_error():
         fit_gp(x, y, seed=rng).log_marginal_likelihood
         == fit_gp(x, y, seed=0).log_marginal_likelihood
     )
+
+
+def test_more_api_misuse_is_an_input_error(tmp_path):
+    """An API review's cases: each escaped as Python's or NumPy's own TypeError,
+    ValueError or AttributeError."""
+    from cascal import Constant, Periodic, save_model
+    from cascal.workflow import compensation
+
+    x = np.linspace(0, 1, 12)
+    y = x + 1e-3 * np.sin(6 * x)
+    cases = {
+        r"length_scale must be a positive and finite number, got '0.1'": lambda: SquaredExp(
+            "0.1", 1e-6
+        ),
+        r"length_scale .* got None": lambda: SquaredExp(None, 1e-6),
+        r"length_scale .* got array": lambda: SquaredExp(np.array([0.1, 0.2]), 1.0),
+        r"period must be a positive and finite number, got '360'": lambda: Periodic(
+            1.0, 1.0, period="360"
+        ),
+        r"value must be .* got 'a'": lambda: Constant("a"),
+        r"period must be .* got 'deg'": lambda: fit_gp(x, y, kernel="periodic", period="deg"),
+        r"bounds: expected a dict": lambda: fit_gp(x, y, bounds=[(1e-3, 1.0)]),
+        r"first: expected a fitted stage-0 GP": lambda: Cascade([(x, y)]).fit(first="gp"),
+        r"expected a CalibrationModel, got FittedCascade: make one of a fitted cascade with "
+        r"CalibrationModel.from_cascade": lambda: save_model(
+            tmp_path / "m.json", Cascade([(x, y)]).fit()
+        ),
+    }
+    for words, call in cases.items():
+        with pytest.raises(InputError, match=words):
+            call()
+    from cascal import CalibrationModel
+
+    cascade = Cascade([(x, y)])
+    model = CalibrationModel.from_cascade(cascade, cascade.fit())
+    with pytest.raises(InputError, match=r"tolerance: expected a positive number of m, got '1e-6'"):
+        compensation(model, "1e-6")
+    assert not (tmp_path / "m.json").exists()

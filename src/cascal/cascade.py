@@ -173,6 +173,8 @@ class Cascade:
             first: An already fitted stage-0 GP to reuse (e.g. one test-bed calibration
                 shared by several methods or devices); it must be fitted on stage 0's data.
         """
+        if first is not None and not isinstance(first, FittedGP):
+            raise InputError(f"first: expected a fitted stage-0 GP (FittedGP), got {first!r}")
         if self.method == "lut":
             return self._fit_tables()
         with single_threaded_blas():  # the same numbers whatever BLAS's threads (a review:

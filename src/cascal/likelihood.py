@@ -356,6 +356,11 @@ def search_bounds(
             scale = v if unit else 1.0
             rows[name] = (1e-6 * scale, 1e4 * scale)
     rows["noise_variance"] = (1e-10 * v, 10.0 * v)
+    if user is not None and not isinstance(user, dict):
+        raise InputError(
+            f"bounds: expected a dict of name: (lower, upper), e.g. "
+            f"{{'length_scale': (0.01, 1.0)}}, got {user!r}"
+        )
     for name, lohi in (user or {}).items():
         if name not in rows:
             raise InputError(f"bounds: unknown hyperparameter {name!r}; known: {list(rows)}")

@@ -625,8 +625,7 @@ def verify_model(
     ref = as_positions(reference, "reference")  # (a NaN had made every figure NaN)
     if ref.shape != c.reading.shape:
         raise InputError(
-            f"reading and reference: expected the same length, got {c.reading.size} and "
-            f"{ref.size}"
+            f"reading and reference: expected the same length, got {c.reading.size} and {ref.size}"
         )
     return verify(
         c.reading,
@@ -668,7 +667,11 @@ def compensation(
             )
         u_min = float(np.min(device.predict(np.linspace(lo, hi, 2001), return_std=True)[1]))
         tolerance = rtol * u_min
-    if not (np.isfinite(tolerance) and tolerance > 0):
+    try:
+        ok = bool(np.isfinite(tolerance) and tolerance > 0)
+    except TypeError:  # ("1e-6", None ...)
+        ok = False
+    if not ok:
         raise InputError(
             f"tolerance: expected a positive number of {model.unit}, got {tolerance!r}"
         )

@@ -162,6 +162,14 @@ def _per_reading(stage: Stage) -> Stage:
 
 def save_model(path: str | os.PathLike, model: CalibrationModel) -> Path:
     """Write ``model`` to ``path`` as JSON, atomically (a temporary file, then a rename)."""
+    if not isinstance(model, CalibrationModel):
+        hint = ""
+        if isinstance(model, FittedCascade):
+            hint = (
+                ": make one of a fitted cascade with "
+                "CalibrationModel.from_cascade(cascade, fitted, unit=...)"
+            )
+        raise InputError(f"model: expected a CalibrationModel, got {type(model).__name__}{hint}")
     doc = model_to_dict(model)
     texts = _number_texts(doc, {})  # each list of numbers formatted once, for both uses
     doc["checksum"] = {"algorithm": "sha256", "value": _checksum(doc, texts)}
