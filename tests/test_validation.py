@@ -346,3 +346,12 @@ def test_more_api_misuse_is_an_input_error(tmp_path):
     with pytest.raises(InputError, match=r"tolerance: expected a positive number of m, got '1e-6'"):
         compensation(model, "1e-6")
     assert not (tmp_path / "m.json").exists()
+
+
+def test_a_masked_array_with_masked_entries_is_refused():
+    """An API review's case: np.asarray takes the values under a mask, so a masked-out
+    suspect reading was fitted. Masked entries are refused, with the remedy."""
+    x = np.ma.masked_array(X, mask=[False, False, True, False, False, False])
+    with pytest.raises(InputError, match=r"x: a masked array with 1 masked entries \(first at"):
+        fit_gp(x, Y)
+    assert fit_gp(np.ma.masked_array(X), Y, hyperparameters=HP).x.size == X.size  # none masked

@@ -38,7 +38,9 @@ class Stage:
     Attributes:
         x: Readings of the sensor being calibrated, shape (n,).
         y: Readings of the more accurate sensor it was aligned with, shape (n,).
-        noise: Known variances of ``y`` (number or (n,)), e.g. from repeated readings.
+        noise: Known noise of ``y``: a number or (n,) variances, e.g. from repeated
+            readings; an (n, n) covariance or a :mod:`cascal.noise` object also fits, but a
+            model file keeps one variance per reading.
         name: Used in messages, e.g. ``"testbed"``.
     """
 
@@ -116,7 +118,9 @@ class Cascade:
         kernel: Kernel name or Kernel, for every GP stage.
         mean: Prior mean of every GP stage (default identity).
         n_restarts: Local optimiser starts per stage (after screening seeded candidates).
-        seed: Seed of the whole fit; each stage gets its own child stream.
+        seed: Seed of the whole fit; each stage gets its own child stream. None draws
+            fresh entropy: fits that screen random starts (sums and products of kernels)
+            may then differ from run to run.
         period: Period of a ``periodic`` kernel.
         check_range: Refuse a stage whose upper-sensor readings leave the range of the
             stage above (the reference could not confirm them).

@@ -33,6 +33,13 @@ def as_positions(a: object, name: str) -> np.ndarray:
         raise InputError(f"{name}: expected numbers, got {type(a).__name__} ({exc})") from None
     if arr is None:
         raise InputError(f"{name}: expected real numbers, got complex ones")
+    if isinstance(a, np.ma.MaskedArray) and np.ma.count_masked(a):
+        first = int(np.flatnonzero(np.ma.getmaskarray(a))[0])
+        raise InputError(  # (np.asarray takes the values under the mask: they were fitted)
+            f"{name}: a masked array with {np.ma.count_masked(a)} masked entries (first at "
+            f"index {first}): masked values are not left out by themselves; pass the unmasked "
+            "ones (a.compressed(), the same for every aligned array)"
+        )
     if arr.ndim != 1:
         raise InputError(f"{name}: expected shape (n,), got {arr.shape}")
     finite = np.isfinite(arr)

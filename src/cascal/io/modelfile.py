@@ -67,7 +67,7 @@ class CalibrationModel:
         kernel: Kernel family asked for (``"se"``, ...), None for ``lut``.
         period: Period of a periodic kernel, or None.
         seed: Seed of the fit.
-        n_restarts: L-BFGS-B starts per stage.
+        n_restarts: Optimiser starts per stage, at most (see :func:`cascal.fit_gp`).
         created: UTC time of the fit, ISO 8601.
         cascal_version: Version that fitted it.
     """
