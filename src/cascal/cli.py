@@ -1097,7 +1097,14 @@ def _stop_listening(ignore_interrupts: Callable[[], None]) -> None:
 
 
 def _main(argv: Sequence[str] | None) -> int:
-    args = _parser().parse_args(join_negative(list(sys.argv[1:] if argv is None else argv)))
+    parser = _parser()
+    given = join_negative(list(sys.argv[1:] if argv is None else argv))
+    for a in given:
+        if a == "--":
+            break
+        if a.startswith("-") and a.endswith("=--"):  # (Python 3.11's argparse passes a
+            parser.error(f"argument {a[:-3]}: expected a value, got '--'")  # [] on, untyped)
+    args = parser.parse_args(given)
     func: Callable[[argparse.Namespace], int] = args.func
     to_stdout = is_stdout(getattr(args, "output", None))
     from .gp import pin_blas

@@ -308,6 +308,19 @@ def test_restarts_beyond_the_cap_are_refused(tmp_path):
     assert not (tmp_path / "m.json").exists()
 
 
+@pytest.mark.parametrize("option", ["--unit=--", "-o=--", "--restarts=--", "--seed=--"])
+def test_an_option_given_as_equals_dashdash_is_refused(tmp_path, option):
+    """A fuzzing review's case: ``--unit=--`` reached the command as an empty list
+    (Python 3.11's argparse), a traceback and exit 1; ``fit --screening-level=--`` wrote
+    the model first."""
+    stage = tmp_path / "s.csv"
+    stage.write_text(GOOD)
+    res = run_cascal("fit", stage, "-o", tmp_path / "m.json", option)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert f"argument {option[:-3]}: expected a value, got '--'" in res.stderr
+    assert not (tmp_path / "m.json").exists()
+
+
 def test_ctrl_c_while_the_command_starts_ends_without_a_traceback(tmp_path):
     """A review's case: Ctrl-C in the first 0.3 s, while the package imported NumPy and
     SciPy, printed a traceback. The package now loads its modules on first use, so the
