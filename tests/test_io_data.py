@@ -490,3 +490,19 @@ def test_the_unit_check_ignores_one_mistyped_cell_and_sees_rotary_columns(tmp_pa
     rad = _write(tmp_path, "encoder,table\n" + "".join(f"{d},{np.radians(d)}\n" for d in deg))
     with pytest.warns(DataWarning, match="different units"):
         read_stage(rad, period=360.0)
+
+
+@pytest.mark.parametrize(
+    ("scale", "words"),
+    [(1e76, "is too large (|value| < 1e+75 expected)"), (1e-200, "span only")],
+)
+def test_a_stage_at_a_scale_float64_cannot_fit_is_refused_by_row(tmp_path, scale, words):
+    """A fuzzing review's cases: a stage file of values near 1e308 fitted (method lut),
+    then broke info and report; scaled by 1e100 or 1e-200 it failed inside the fit with
+    messages naming no file or row. Now the file and row are named."""
+    rows = "".join(f"{k / 10 * scale!r},{(k / 10 + 0.001) * scale!r}\n" for k in range(1, 8))
+    p = _write(tmp_path, "testbed,reference\n" + rows)
+    with pytest.raises(InputError, match=r"s\.csv, row \d+.*" + re.escape(words)):
+        read_stage(p)
+    ok = "".join(f"{k / 10 * 1e70!r},{(k / 10 + 0.001) * 1e70!r}\n" for k in range(1, 8))
+    assert read_stage(_write(tmp_path, "testbed,reference\n" + ok, "ok.csv")).x.size == 7

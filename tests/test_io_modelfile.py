@@ -619,3 +619,29 @@ def test_stages_with_a_known_noise_of_any_diagonal_form_are_saved(tmp_path):
     cascade = Cascade([Stage(tb, ref, noise=corr, name="testbed"), (dev, tbd)])
     with pytest.raises(InputError, match="stage 'testbed': its known noise has correlations"):
         CalibrationModel.from_cascade(cascade, cascade.fit())
+
+
+def _shift_stage_1(doc: dict) -> None:
+    """Stage 1's test-bed readings moved, its table and targets kept: they are no longer
+    those readings mapped through stage 0's table."""
+    y = doc["stages"][1]["y"]
+    doc["stages"][1]["y"] = [v + 1e-4 for v in y]
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (lambda d: d["stages"][0]["model"]["offsets"].__setitem__(2, 1.0), "stage 0: its table"),
+        (lambda d: d["stages"][1]["model"]["targets"].__setitem__(4, 0.5), "stage 1: its table"),
+        (_shift_stage_1, "stage 1: its targets are not the readings above it mapped"),
+    ],
+)
+def test_an_edited_lookup_table_is_refused(models, tmp_path, change, words):
+    """A fuzzing review's case: a lut model's offsets edited (the checksum made again)
+    loaded, and every correction came out 1 m off; GP models refused such edits. A
+    table is now checked against the data it was made from."""
+    path = save_model(tmp_path / "lut.json", models["lut"])
+    assert load_model(path).method == "lut"  # as written: fine
+    _rewrite(path, change)
+    with pytest.raises(ModelFileError, match=f"inconsistent model file: {words}"):
+        load_model(path)

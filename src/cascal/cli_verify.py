@@ -26,7 +26,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     )
     from .errors import InputError
     from .io.atomic import save_figure
-    from .io.csvout import auto_decimals, write_columns
+    from .io.csvout import auto_decimals, exact_decimals, write_columns
     from .io.data import check_units, read_table
     from .text import range_text
     from .verification import expected_within
@@ -152,9 +152,12 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         }
         if v.conforms is not None:
             cols["conforms"] = np.ma.masked_array(v.conforms, ~m)
-        decimals = auto_decimals(
+        shared = auto_decimals(
             [v.reading[m], v.reference[m], v.corrected[m]], v.u[m] if v.has_u else None
         )
+        decimals = [shared] * len(cols)  # the check file's own columns as read
+        decimals[0] = exact_decimals(v.reading, shared)[0]
+        decimals[1] = exact_decimals(v.reference, shared)[0]
     write_outputs(
         ("Check points", args.output, lambda: write_columns(args.output, cols, decimals=decimals)),
         ("Figure", args.plot, lambda: save_figure(fig, args.plot, dpi=130)),

@@ -199,6 +199,14 @@ def read_table(
     return Table(cols, rows, Source(name, digest, int(rows.size), names, tuple(sorted(skip))))
 
 
+#: Stage readings must lie below this in magnitude: the fit's products of variances (the
+#: unit to the 4th power) stay finite (a stage scaled by 1e100 failed inside the fit).
+HUGE = 1e75
+#: A stage column must span at least this (where it spans anything): its variances, in the
+#: unit squared, stay well above float64's smallest normal number.
+TINY = 1e-100
+
+
 def read_stage(
     path: str | os.PathLike,
     *,
@@ -222,9 +230,20 @@ def read_stage(
             increasing; the message names the file and row.
     """
     hint = "; choose two by name with --x-column and --y-column"
-    table = read_table(path, (x_column, y_column), hint=hint, min_rows=MIN_POINTS, exclude=exclude)
+    table = read_table(
+        path, (x_column, y_column), hint=hint, min_rows=MIN_POINTS, exclude=exclude, max_abs=HUGE
+    )
     name = table.source.file
     x, y = table.columns
+    for col, values in zip(table.source.columns, (x, y), strict=True):
+        span = float(values.max() - values.min())
+        if 0 < span < TINY:  # variances, in the unit squared, would underflow
+            raise InputError(
+                f"the readings in column {col!r} span only {span:.3g}: too small a scale to "
+                "compute with (variances in the unit squared underflow); use a smaller unit",
+                file=name,
+                row=int(table.rows[np.argmax(values)]),
+            )
     check_units(x, y, table.source.columns, name)  # (before a rotary stage's unwrapping)
     if period is not None:
         span = float(x.max() - x.min())

@@ -379,6 +379,9 @@ def _from_dict(doc: dict) -> CalibrationModel:
             model = OffsetTable(knots, offsets)
         if targets.size != n:
             raise ValueError(f"stage {k}: {targets.size} targets for {n} points")
+        if m["type"] != "gp":  # a table is its data's: an edited one would shift corrections
+            expected = y if k == 0 or not isinstance(models[-1], OffsetTable) else models[-1](y)
+            _check_table(k, model, x, targets, expected)
         models.append(model)
         data.append(Stage(x, y, noise, st["name"]))
         used.append(Stage(x, targets, noise, st["name"]))
@@ -508,6 +511,22 @@ def _check_weights(gp: FittedGP) -> None:
     slack = 1e3 * a.size * np.finfo(float).eps * bound + 1e-300
     if np.any(np.abs(L @ (L.T @ a) - r) > slack + 1e-12 * np.max(np.abs(r), initial=0.0)):
         raise ValueError("alpha, cholesky, x and targets do not belong to one fit")
+
+
+def _check_table(
+    k: int, table: OffsetTable, x: np.ndarray, targets: np.ndarray, expected: np.ndarray
+) -> None:
+    """ValueError unless stage ``k``'s ``table`` is the one its readings ``x`` (n,) and
+    ``targets`` (n,) give, and the targets are ``expected`` (n,): stage 0's reference
+    readings, or a later stage's mapped through the table before."""
+    from ..baselines import fit_table
+
+    fresh = fit_table(x, targets)
+    same = np.array_equal(fresh.knots, table.knots) and np.array_equal(fresh.offsets, table.offsets)
+    if not same:
+        raise ValueError(f"stage {k}: its table's knots and offsets are not its data's (edited?)")
+    if not np.array_equal(expected, targets):
+        raise ValueError(f"stage {k}: its targets are not the readings above it mapped (edited?)")
 
 
 def _lut_dict(table: OffsetTable, targets: np.ndarray) -> dict[str, Any]:
