@@ -506,3 +506,12 @@ def test_a_stage_at_a_scale_float64_cannot_fit_is_refused_by_row(tmp_path, scale
         read_stage(p)
     ok = "".join(f"{k / 10 * 1e70!r},{(k / 10 + 0.001) * 1e70!r}\n" for k in range(1, 8))
     assert read_stage(_write(tmp_path, "testbed,reference\n" + ok, "ok.csv")).x.size == 7
+
+
+def test_utf16_without_a_byte_order_mark_is_named(tmp_path):
+    """A fuzzing review's case: UTF-16 text without its byte-order mark was called a row of
+    units under the header."""
+    p = tmp_path / "u.csv"
+    p.write_bytes("testbed,reference\n0.1,0.1\n0.5,0.5\n0.9,0.9\n".encode("utf-16-le"))
+    with pytest.raises(InputError, match=r"u\.csv: UTF-16 text, not UTF-8"):
+        read_stage(p)

@@ -645,3 +645,15 @@ def test_an_edited_lookup_table_is_refused(models, tmp_path, change, words):
     _rewrite(path, change)
     with pytest.raises(ModelFileError, match=f"inconsistent model file: {words}"):
         load_model(path)
+
+
+def test_a_byte_order_mark_loads_and_trailing_text_is_named(saved):
+    """A fuzzing review's cases: a model file saved by an editor with a UTF-8 byte-order
+    mark was refused with Python's JSON message, and one stray character after the model
+    was called a truncated file."""
+    text = saved.read_text()
+    saved.write_text(text, encoding="utf-8-sig")
+    assert load_model(saved).method == "bayes"
+    saved.write_text(text + "x")
+    with pytest.raises(ModelFileError, match=r"Extra data \(text after the model's closing"):
+        load_model(saved)

@@ -145,6 +145,11 @@ def read_table(
     except OSError as exc:
         raise InputError(f"cannot read the file ({exc.strerror or exc})", file=name) from None
     digest = hashlib.sha256(raw).hexdigest()
+    head = raw[:4096]
+    if len(head) >= 8 and max(head[0::2].count(0), head[1::2].count(0)) > len(head) // 4:
+        raise InputError(  # every other byte 0: UTF-16 without its byte-order mark
+            "UTF-16 text, not UTF-8: save it as CSV (UTF-8) instead", file=name
+        )
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:

@@ -243,7 +243,7 @@ def load_model_checksum(path: str | os.PathLike) -> tuple[CalibrationModel, str]
     read of the file (a pipe can be read once)."""
     name = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        text = Path(path).read_text(encoding="utf-8-sig")  # (an editor's byte-order mark)
     except OSError as exc:
         raise ModelFileError(f"{name}: cannot read the model file ({exc})") from None
     except UnicodeDecodeError:
@@ -281,6 +281,8 @@ def _parse(text: str, name: str) -> tuple[CalibrationModel, str]:
         body = text.rstrip()  # a model file is one object: cut short, it lacks its "}"
         short = exc.pos >= len(body) or not body.endswith("}")
         end = " (the file ends early: truncated?)" if short else ""
+        if exc.msg == "Extra data":
+            end = " (text after the model's closing '}': an edit, or two files joined?)"
         raise ModelFileError(
             f"{name}: not a valid model file: JSON error at line {exc.lineno} column "
             f"{exc.colno}: {exc.msg}{end}"
