@@ -12,15 +12,14 @@ from cascal.io import csvout
 from cascal.io.csvout import auto_decimals, exact_decimals, format_columns, write_columns
 
 
+def _float_lists(bound: float, max_size: int):
+    """Lists of 1 to ``max_size`` finite floats in [-bound, bound]."""
+    finite = st.floats(min_value=-bound, max_value=bound, allow_nan=False, allow_infinity=False)
+    return st.lists(finite, min_size=1, max_size=max_size)
+
+
 @settings(max_examples=60, deadline=None)
-@given(
-    st.lists(
-        st.floats(min_value=-1e6, max_value=1e6, allow_nan=False, allow_infinity=False),
-        min_size=1,
-        max_size=30,
-    ),
-    st.integers(min_value=0, max_value=9),
-)
+@given(_float_lists(1e6, 30), st.integers(min_value=0, max_value=9))
 def test_format_columns_matches_python_formatting(values, decimals):
     v = np.array(values)
     text = format_columns([v, v > 0], decimals)
@@ -144,15 +143,7 @@ def test_readings_with_one_decimal_more_stay_on_the_fast_path():
 
 
 @settings(max_examples=80, deadline=None)
-@given(
-    st.lists(
-        st.floats(min_value=-1e5, max_value=1e5, allow_nan=False, allow_infinity=False),
-        min_size=1,
-        max_size=20,
-    ),
-    st.integers(min_value=0, max_value=12),
-    st.integers(min_value=0, max_value=6),
-)
+@given(_float_lists(1e5, 20), st.integers(0, 12), st.integers(0, 6))
 def test_exact_decimals_write_readings_back_exactly(values, digits, least):
     """Values of ``digits`` decimals come back from their text as the same floats, with no
     more decimals than they need (and never fewer than ``least``), where the fast path

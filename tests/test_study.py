@@ -21,6 +21,7 @@ from scipy.stats import wilcoxon
 from cascal.errors import InputError
 from cascal.montecarlo import StudyConfig, run_trial, summarize, trial_rng
 from cascal.study import run_study
+from utils import stored_trials
 
 CONFIG = StudyConfig(seed=7, n_restarts=2)
 
@@ -542,17 +543,6 @@ def test_cli_study_names_a_shrunk_summary_and_a_dangling_link(tmp_path):
     assert f"--out {link}: a link to {tmp_path / 'nowhere'}, which does not exist" in done.stderr
 
 
-def _stored(db) -> int:
-    try:
-        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1)
-        try:
-            return con.execute("SELECT COUNT(*) FROM trials").fetchone()[0]
-        finally:
-            con.close()
-    except sqlite3.Error:
-        return 0
-
-
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 @pytest.mark.parametrize(
     ("signals", "status", "word"),
@@ -576,7 +566,7 @@ def test_cli_study_stopped_by_signals_says_so_and_resumes(tmp_path, signals, sta
         start_new_session=True,  # its own process group, as a terminal's foreground job
     )
     deadline = time.monotonic() + 120
-    while _stored(out / "study.sqlite") < 1 and time.monotonic() < deadline:
+    while stored_trials(out / "study.sqlite") < 1 and time.monotonic() < deadline:
         time.sleep(0.05)
     for name in signals:
         os.killpg(p.pid, getattr(signal, name))
@@ -584,7 +574,7 @@ def test_cli_study_stopped_by_signals_says_so_and_resumes(tmp_path, signals, sta
     assert p.returncode == status, err
     assert "Traceback" not in err and "leaked" not in err
     assert f"cascal study: {word} (the trials stored in {out} stay" in err
-    stored = _stored(out / "study.sqlite")
+    stored = stored_trials(out / "study.sqlite")
     assert 1 <= stored < 2000
     resumed = run_study(out, trials=stored + 3, config=CONFIG, workers=1)
     assert resumed.ran >= 3 and [r.index for r in resumed.results] == list(range(stored + 3))

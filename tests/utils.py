@@ -64,3 +64,17 @@ def demo_stages(case=None):
         src = Source(stage.file, "ab" * 32, stage.x.size, stage.columns)
         out.append(StageData(rep.x, rep.y, noise, rep.counts, rep.first + 2, src))
     return out
+
+
+def stored_trials(db) -> int:
+    """Trials in the study database ``db`` so far, read-only (0 before it exists)."""
+    import sqlite3
+
+    try:
+        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1)
+        try:
+            return con.execute("SELECT COUNT(*) FROM trials").fetchone()[0]
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return 0

@@ -382,21 +382,15 @@ def test_ctrl_c_twice_in_a_study_ends_it_and_the_same_command_resumes(tmp_path, 
     """A review's case: a second Ctrl-C while the study waited for its workers hung it
     (they kept running, and so did the command). Now the workers leave Ctrl-C to the
     command, which stops them; the stored trials stay, and the command resumes."""
-    import sqlite3
     import time
+
+    from utils import stored_trials
 
     out = tmp_path / "study"
     args = ["study", "--trials", "300", "--workers", "2", "--out", out]
 
     def stored() -> int:
-        try:
-            con = sqlite3.connect(f"file:{out / 'study.sqlite'}?mode=ro", uri=True)
-            try:
-                return con.execute("SELECT count(*) FROM trials").fetchone()[0]
-            finally:
-                con.close()
-        except sqlite3.Error:
-            return 0
+        return stored_trials(out / "study.sqlite")
 
     def ready(proc) -> None:
         deadline = time.monotonic() + 120
