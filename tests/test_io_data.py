@@ -515,3 +515,7 @@ def test_utf16_without_a_byte_order_mark_is_named(tmp_path):
     p.write_bytes("testbed,reference\n0.1,0.1\n0.5,0.5\n0.9,0.9\n".encode("utf-16-le"))
     with pytest.raises(InputError, match=r"u\.csv: UTF-16 text, not UTF-8"):
         read_stage(p)
+    p.write_bytes(bytes(range(256)) * 16)  # zeros at every 256th byte: binary, not UTF-16
+    with pytest.raises(InputError) as exc:
+        read_stage(p)
+    assert "UTF-16" not in str(exc.value)

@@ -258,30 +258,25 @@ def test_averaged_readings_none_repeated_learn_the_noise_too():
     assert fit_gp(r.x, r.y, noise=r.noise, learn_noise=False).noise_variance == 0.0
 
 
-@pytest.mark.parametrize("period", [None, 1.0])
-def test_a_position_repeated_exactly_is_refused_where_the_noise_is_learned(period):
+def test_a_position_repeated_exactly_is_refused_where_the_noise_is_learned():
     """An API review's case: one (x, y) pair given twice made the learned noise's
     likelihood grow without bound as the noise went to 0: the fit took the noise as
     signal (u 10 times below the error). Such a pair is now refused with the remedy, as
-    contradicting ones are; so is a periodic kernel's pair one turn apart with the same
-    correction. With a known noise at the pair, or given hyperparameters, it stays."""
+    contradicting ones are. With a known noise at either reading, or given
+    hyperparameters, it stays; and so do a periodic kernel's readings a turn apart with
+    the same correction (a lead screw's grid: averaging cannot merge them)."""
     x = np.array([0.0, 0.2, 0.35, 0.5, 0.65, 0.8])
     y = x + 0.01 * np.sin(2 * np.pi * x)
-    other = x[1] + (0.0 if period is None else 360 * period)  # 360 turns on: 360.2
-    x, y = np.r_[x, other], np.r_[y, other + (y[1] - x[1])]  # the same correction y - x
-    kw = {"mean": "identity"}
-    if period is not None:
-        kw.update(kernel="periodic", period=period)
-    with pytest.raises(InputError, match=r"at indices 1 and 6 .*aggregate_repeats"):
-        fit_gp(x, y, **kw)
+    xx, yy = np.r_[x, x[1]], np.r_[y, y[1]]
+    with pytest.raises(InputError, match=r"position 0.2 at indices 1 and 6, .*aggregate_repeats"):
+        fit_gp(xx, yy)
     with pytest.raises(InputError, match=r"at indices 1 and 6"):
-        Cascade([(x, y)], kernel=kw.get("kernel", "se"), period=period).fit()
-    noisy = np.full(x.size, 1e-8)
-    assert np.isfinite(fit_gp(x, y, noise=noisy, learn_noise=True, **kw).noise_variance)
-    if period is not None:  # a turn apart with another correction: two readings of it
-        y2 = y.copy()
-        y2[-1] += 1e-5
-        assert fit_gp(x, y2, **kw).noise_variance > 0
+        Cascade([(xx, yy)]).fit()
+    one_known = np.r_[np.zeros(6), 1e-8]  # the pair's difference has variance 1e-8 at least
+    assert np.isfinite(fit_gp(xx, yy, noise=one_known, learn_noise=True).noise_variance)
+    assert fit_gp(xx, yy, hyperparameters=HP).noise_variance == HP["noise_variance"]
+    turn = np.r_[x, x[1] + 1.0], np.r_[y, y[1] + 1.0]  # one period on, the same correction
+    assert np.isfinite(fit_gp(*turn, kernel="periodic", period=1.0).noise_variance)
 
 
 def test_api_misuse_is_an_input_error():

@@ -488,9 +488,12 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         results = fit_devices(
             tb_model, files, out / "devices", options=options, jobs=jobs, on_result=report
         )
-    except KeyboardInterrupt:  # the summary of this run's devices so far, not the last run's
+    except KeyboardInterrupt as exc:  # the summary of this run's devices so far
+        from .pool import Terminated
+
         path = write_text(summary_path, _fleet_csv(finished, notes))
-        warn("fit-devices", f"interrupted after {len(finished)} of {len(files)} devices: {path}")
+        what = "terminated" if isinstance(exc, Terminated) else "interrupted"
+        warn("fit-devices", f"{what} after {len(finished)} of {len(files)} devices: {path}")
         raise
     summary = write_text(summary_path, _fleet_csv(results, notes))
     n_bad = sum(r.error is not None for r in results)
@@ -1090,9 +1093,12 @@ def _main_thread() -> bool:
 
 
 def _stop_listening(ignore_interrupts: Callable[[], None]) -> None:
-    """Ignore further Ctrl-C and SIGTERM: the command is ending with its message."""
+    """Ignore further Ctrl-C, and SIGTERM where the command handles it: the command is
+    ending with its message (a program's own SIGTERM handler stays)."""
+    from .pool import raise_terminated
+
     ignore_interrupts()
-    if _main_thread():
+    if _main_thread() and signal.getsignal(signal.SIGTERM) is raise_terminated:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 

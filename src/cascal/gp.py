@@ -371,8 +371,8 @@ def fit_gp(
             a position read once, so all zeros where none repeats): its zeros say nothing of
             those readings' noise. ``noise=0`` (a number), or a vector with
             ``learn_noise=False``, interpolates exactly. With a learned noise, a position
-            read twice with the same correction and no known noise (or a periodic kernel's
-            angle so, a turn apart) is refused: average repeats first.
+            read twice with the same correction and no known noise is refused: average
+            repeats first.
         hyperparameters: Given values by name (``length_scale``, ``variance``,
             ``noise_variance``, ...); nothing is optimised.
         n_restarts: Local optimiser starts: the best local maxima of a likelihood table
@@ -431,7 +431,7 @@ def _fit_gp(
     if known is None and not learn_noise:
         raise InputError("noise: with learn_noise=False a known noise must be given")
     if learn_noise and hyperparameters is None:
-        _check_no_exact_repeats(xa, ya, ya - m(xa), known, getattr(kern, "period", None), names)
+        _check_no_exact_repeats(xa, ya - m(xa), known, names)
     r = ya - m(xa)
     if hyperparameters is None and not np.any(r) and known is None:
         raise InputError(
@@ -780,37 +780,25 @@ def _restrict(noise: Noise, idx: np.ndarray, n: int) -> Noise:
 
 
 def _check_no_exact_repeats(
-    x: np.ndarray,
-    y: np.ndarray,
-    r: np.ndarray,
-    known: Noise | None,
-    period: float | None,
-    names: tuple[str, str],
+    x: np.ndarray, r: np.ndarray, known: Noise | None, names: tuple[str, str]
 ) -> None:
-    """Refuse a position read twice with the same correction ``r`` and no known noise
-    (contradicting targets are refused before), or so at the same angle of a periodic
-    kernel's turn: the learned noise's likelihood then grows without bound as that noise
-    goes to 0, and the fit reads the noise as signal (a review: 12 readings with one pair
-    repeated ended with u 10 times below the error). ``x``, ``y``, ``r``: shape (n,);
-    angles and corrections agree to 12 digits (of a turn, of the targets)."""
-    key = x
-    if period is not None:  # the angle in turns, to 12 digits (360.2 is 0.2 a turn on)
-        key = np.round(np.mod(x, period) / period, 12)
-        key[key == 1.0] = 0.0
-    order = np.lexsort((r, key))
-    k0, r0, y0 = key[order], r[order], np.abs(y[order])
-    close = np.abs(r0[1:] - r0[:-1]) <= 1e-12 * np.maximum(y0[1:], y0[:-1])
-    same = np.flatnonzero((k0[1:] == k0[:-1]) & close)
+    """Refuse a position read twice with the same correction ``r`` and no known noise at
+    either reading (contradicting targets are refused before): the learned noise's
+    likelihood then grows without bound as that noise goes to 0, and the fit reads the
+    noise as signal (a review: 12 readings with one pair repeated ended with u 10 times
+    below the error). ``x``, ``r``: shape (n,)."""
+    order = np.argsort(x, kind="stable")
+    xs, rs = x[order], r[order]
+    same = np.flatnonzero((xs[1:] == xs[:-1]) & (rs[1:] == rs[:-1]))
     if not same.size:
         return
     var = np.zeros(x.size) if known is None else known.diagonal(x.size)
     for k in same:
         i, j = sorted((int(order[k]), int(order[k + 1])))
-        if var[i] == 0.0 or var[j] == 0.0:
-            where = "position" if period is None else f"angle (period {period:g})"
+        if var[i] == 0.0 and var[j] == 0.0:
             raise InputError(
-                f"{names[0]}: the same {where} at indices {i} and {j} ({float(x[i])!r} and "
-                f"{float(x[j])!r}), with no known noise: a learned noise would take the pair "
+                f"{names[0]}: the same position {float(x[i])!r} at indices {i} and {j}, with "
+                "the same correction and no known noise: a learned noise would take the pair "
                 "as noise-free; average repeated readings (cascal.aggregate_repeats) so "
                 "they become one point with a known noise variance"
             )

@@ -440,3 +440,26 @@ def test_a_reading_outside_the_range_above_says_when_it_is_a_mean(tmp_path):
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert "row 2" in res.stderr
     assert "(the mean of this position's 3 rows) lies outside the range" in res.stderr
+
+
+def test_a_program_s_own_sigterm_handler_survives_an_interrupted_command():
+    """A diff review's case: a command ending on Ctrl-C set SIGTERM to be ignored even
+    where the program embedding ``cascal.cli.main`` had its own handler: that program
+    could no longer be stopped with ``kill``. Only the command's own handler is replaced."""
+    import signal
+
+    from cascal import cli
+    from cascal.pool import raise_terminated
+
+    def own(signum, frame):  # pragma: no cover - never called
+        pass
+
+    previous = signal.signal(signal.SIGTERM, own)
+    try:
+        cli._stop_listening(lambda: None)
+        assert signal.getsignal(signal.SIGTERM) is own
+        signal.signal(signal.SIGTERM, raise_terminated)
+        cli._stop_listening(lambda: None)
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -146,8 +146,9 @@ def read_table(
         raise InputError(f"cannot read the file ({exc.strerror or exc})", file=name) from None
     digest = hashlib.sha256(raw).hexdigest()
     head = raw[:4096]
-    if len(head) >= 8 and max(head[0::2].count(0), head[1::2].count(0)) > len(head) // 4:
-        raise InputError(  # every other byte 0: UTF-16 without its byte-order mark
+    zeros = sorted((head[0::2].count(0), head[1::2].count(0)))
+    if len(head) >= 8 and zeros[1] > len(head) // 4 and zeros[0] <= len(head) // 64:
+        raise InputError(  # every other byte 0, the others not: UTF-16 without its mark
             "UTF-16 text, not UTF-8: save it as CSV (UTF-8) instead", file=name
         )
     try:
