@@ -32,6 +32,8 @@ def test_csv_and_summary_hold_the_library_numbers(linear_model, check_file, tmp_
     assert names == ("reading", "reference", "corrected", "error", "u_calibration", "u", "U",
                      "En", "out_of_range")  # fmt: skip
     src = np.loadtxt(check_file, delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(table["reading"], src[:, 0])  # as read, not rounded to the
+    np.testing.assert_array_equal(table["reference"], src[:, 1])  # corrections' decimals
     lib = verify_model(load_model(linear_model), src[:, 0], src[:, 1], u_reference=1e-6)
     en = np.where(lib.inside, lib.en, np.nan)  # points outside the range are not judged
     for name, want in (("corrected", lib.corrected), ("error", lib.error), ("u", lib.u),
