@@ -189,3 +189,25 @@ def test_completed_yields_in_list_order_and_signals_wait_for_the_caller():
         assert got == []
     finally:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def test_a_pool_manager_thread_s_failure_is_quiet_once_a_signal_stops_the_command():
+    """A review's case: SIGTERM to the process group while 16 workers started broke the
+    pool under its manager thread, which in CPython 3.11 then failed on its own (a
+    thread's traceback, 1 run in 12, before "terminated"). While a signal stops the
+    command, that thread's exceptions are dropped; others still reach the hook."""
+    seen = []
+
+    class _ExecutorManagerThread:  # the name CPython gives the pool's manager thread
+        pass
+
+    def args(thread):
+        return threading.ExceptHookArgs((RuntimeError, RuntimeError("x"), None, thread))
+
+    quiet = pool._quiet_when_stopping(got := [], seen.append)
+    manager, other = _ExecutorManagerThread(), threading.current_thread()
+    quiet(args(manager))  # no signal yet: reported
+    got.append(signal.SIGTERM)
+    quiet(args(manager))  # stopping: dropped
+    quiet(args(other))  # another thread: reported
+    assert [a.thread for a in seen] == [manager, other]

@@ -123,6 +123,8 @@ def deferred_signals() -> Iterator[list[int]]:
     for signum, handlers in ours.items():
         if signal.getsignal(signum) in handlers:
             previous[signum] = signal.signal(signum, lambda signum, frame: got.append(signum))
+    hook = threading.excepthook
+    threading.excepthook = _quiet_when_stopping(got, hook)
     try:
         yield got
         raise_signals(got)
@@ -133,8 +135,24 @@ def deferred_signals() -> Iterator[list[int]]:
             signal.raise_signal(signal.SIGTERM)  # (the process ends here)
         raise
     finally:
+        threading.excepthook = hook
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+
+
+def _quiet_when_stopping(got: list[int], hook: Callable) -> Callable:
+    """``threading.excepthook`` that drops the exceptions of a process pool's manager
+    thread once a signal in ``got`` stops the command: a SIGTERM to the process group
+    while workers start can break the pool under that thread, which in CPython 3.11 then
+    fails on its own ("dictionary changed size during iteration"), a traceback in the
+    middle of the command's "terminated"; the pool is being shut down anyway."""
+
+    def quiet(args) -> None:
+        if got and type(args.thread).__name__ == "_ExecutorManagerThread":
+            return
+        hook(args)
+
+    return quiet
 
 
 def raise_signals(got: list[int]) -> None:
