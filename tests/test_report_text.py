@@ -115,3 +115,31 @@ def test_exclude_spec_writes_runs_of_rows_as_ranges():
         assert _row_numbers(spec.split(":", 1)[1], spec) == rows
 
     round_trip()
+
+
+def test_a_partial_turn_s_largest_u_is_over_the_measured_arc():
+    """A review's case: for a rotary device measured over part of the turn, ``info`` and
+    the report gave the largest u (and the RMS correction) over the whole turn, the
+    unmeasured arc included: 0.0353 deg where the measured arc's was 0.000218 (the same
+    report's plan table said so). Both are now over the measured arc."""
+    from dataclasses import replace
+
+    from cascal.workflow import arc_width, correct, summarize_device, unmeasured_arc
+
+    case = rotary_demo(0)
+    dev = case.stages[1]
+    keep = (dev.x < 150.0) | (dev.x > 250.0)
+    part = replace(case, stages=(case.stages[0], replace(dev, x=dev.x[keep], y=dev.y[keep])))
+    model = fit_model(demo_stages(part), kernel="periodic", period=360.0, unit="deg",
+                      n_restarts=1)  # fmt: skip
+    start, width = arc_width(unmeasured_arc(model), 360.0)
+    arc = np.linspace(start + width, start + 360.0, 1001)  # the measured arc, independently
+    c = correct(model, arc)
+    assert not c.out_of_range.any()
+    s = summarize_device(model)
+    assert s["max_u"] == float(c.u.max())
+    assert s["rms_correction"] == float(np.sqrt(np.mean((c.corrected - arc) ** 2)))
+    assert float(correct(model, np.linspace(0, 360, 1001)).u.max()) > 10 * s["max_u"]
+    html = build_report(model)
+    u = s["max_u"]
+    assert f"Largest u over the calibrated range: {u:.6g} deg" in html

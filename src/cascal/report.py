@@ -24,7 +24,7 @@ from .reportdata import CurveView, StageView, correction_curve, stage_views
 from .screening import LEVEL, Screening
 from .text import arc_text, caution_lines, hyperparameter_unit, range_text
 from .verification import Comparison, Verification
-from .workflow import MeasurementPlan, arc_width, plan_measurements
+from .workflow import MeasurementPlan, arc_width, plan_measurements, summarize_device
 
 __all__ = [
     "build_report",
@@ -279,11 +279,9 @@ def build_report(
         else "Lookup tables give no uncertainty."
     )
     parts.append(f"<p>{e(note)}</p>")
-    if curve.u is not None:
-        parts.append(
-            f"<p>Largest u over the calibrated range: {e(_quantity(float(np.max(curve.u)), unit))}."
-            "</p>"
-        )
+    if curve.u is not None:  # (as info gives it: a rotary device's unmeasured arc left out)
+        largest = float(summarize_device(model)["max_u"])
+        parts.append(f"<p>Largest u over the calibrated range: {e(_quantity(largest, unit))}.</p>")
     parts.append(_img(correction_figure(curve, unit=unit, period=model.period), "final correction"))
     if curve.u is not None:
         parts += _plan_section(model)

@@ -844,8 +844,13 @@ class DeviceResult:
 
 def summarize_device(model: CalibrationModel) -> dict[str, object]:
     """Size of a device's correction: RMS correction and largest u over the calibrated
-    range (one period for a periodic model), on a grid of 1001 readings."""
-    lo, hi = (0.0, float(model.period)) if model.periodic else model.calibrated_range
+    range (for a periodic model, the turn, less the arc its device readings leave out), on
+    a grid of 1001 readings."""
+    lo, hi = model.calibrated_range
+    if model.periodic:
+        period = float(model.period)
+        arc = unmeasured_arc(model)
+        lo, hi = (0.0, period) if arc is None else (sum(arc_width(arc, period)), arc[0] + period)
     grid = np.linspace(lo, hi, _SUMMARY_GRID)
     c = correct(model, grid)
     device = model.fitted.device
