@@ -23,6 +23,16 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     new = load_checked(args.new, o=args.output, plot=args.plot)
     c = compare_models(old, new)
     s, unit = c.summary(), old.unit
+    if all(
+        np.array_equal(a.x, b.x) and np.array_equal(a.y, b.y)
+        for a, b in zip(old.data, new.data, strict=True)
+    ):
+        warn(
+            "compare",
+            "both models were fitted on the same readings: the band below is what two "
+            "independent calibrations of an unchanged device would differ by, not a "
+            "recalibration",
+        )
     span = (
         f"one turn (period {old.period:g})"
         if old.periodic

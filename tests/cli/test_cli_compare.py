@@ -100,3 +100,12 @@ def test_bad_comparisons_are_refused(models, which, extra, words):
     res = run_cascal("compare", m["old"], other, "-o", tmp / f"bad_{which}.csv", *extra)
     assert res.returncode == 2 and words in res.stderr and "Traceback" not in res.stderr
     assert not (tmp / f"bad_{which}.csv").exists()
+
+
+def test_a_model_compared_with_itself_is_named(linear_model):
+    """A review's case: comparing a model file with itself reported a non-zero u and a band
+    with no word that both hold the same readings."""
+    res = run_cascal("compare", linear_model, linear_model)
+    assert res.returncode == 0, res.stderr
+    assert "both models were fitted on the same readings" in res.stderr
+    assert "largest 0 m" in res.stdout
