@@ -72,17 +72,11 @@ def test_the_correction_figure_marks_the_arc_a_rotary_device_left_out():
     """A user review's case: the report's correction figure drew +-U straight through the
     part of the turn the device readings left out, unmarked, while the text above named it
     as flagged. It is shaded now, in every turn drawn, and named in the legend."""
-    from dataclasses import replace
 
     from cascal.report import correction_curve, correction_figure
     from cascal.workflow import unmeasured_arc
 
-    case = rotary_demo(0)
-    dev = case.stages[1]
-    keep = (dev.x < 150.0) | (dev.x > 250.0)
-    part = replace(case, stages=(case.stages[0], replace(dev, x=dev.x[keep], y=dev.y[keep])))
-    model = fit_model(demo_stages(part), kernel="periodic", period=360.0, unit="deg",
-                      n_restarts=1)  # fmt: skip
+    model = _partial_turn_model()
     curve = correction_curve(model)
     assert curve.arc == unmeasured_arc(model) is not None
     ax = correction_figure(curve, unit="deg", period=360.0).axes[0]
@@ -91,7 +85,7 @@ def test_the_correction_figure_marks_the_arc_a_rotary_device_left_out():
     start = curve.arc[0]
     spans = [p.get_x() for p in ax.patches if p.get_label() != "reference could not measure"]
     assert any(abs(x - start) < 1e-9 for x in spans)
-    full = fit_model(demo_stages(case), kernel="periodic", period=360.0, n_restarts=1)
+    full = fit_model(demo_stages(rotary_demo(0)), kernel="periodic", period=360.0, n_restarts=1)
     assert correction_curve(full).arc is None
 
 
@@ -122,16 +116,10 @@ def test_a_partial_turn_s_largest_u_is_over_the_measured_arc():
     the report gave the largest u (and the RMS correction) over the whole turn, the
     unmeasured arc included: 0.0353 deg where the measured arc's was 0.000218 (the same
     report's plan table said so). Both are now over the measured arc."""
-    from dataclasses import replace
 
     from cascal.workflow import arc_width, correct, summarize_device, unmeasured_arc
 
-    case = rotary_demo(0)
-    dev = case.stages[1]
-    keep = (dev.x < 150.0) | (dev.x > 250.0)
-    part = replace(case, stages=(case.stages[0], replace(dev, x=dev.x[keep], y=dev.y[keep])))
-    model = fit_model(demo_stages(part), kernel="periodic", period=360.0, unit="deg",
-                      n_restarts=1)  # fmt: skip
+    model = _partial_turn_model()
     start, width = arc_width(unmeasured_arc(model), 360.0)
     arc = np.linspace(start + width, start + 360.0, 1001)  # the measured arc, independently
     c = correct(model, arc)
@@ -143,3 +131,14 @@ def test_a_partial_turn_s_largest_u_is_over_the_measured_arc():
     html = build_report(model)
     u = s["max_u"]
     assert f"Largest u over the calibrated range: {u:.6g} deg" in html
+
+
+def _partial_turn_model():
+    """The rotary demo with its device readings from 150 to 250 deg left out."""
+    from dataclasses import replace
+
+    case = rotary_demo(0)
+    dev = case.stages[1]
+    keep = (dev.x < 150.0) | (dev.x > 250.0)
+    part = replace(case, stages=(case.stages[0], replace(dev, x=dev.x[keep], y=dev.y[keep])))
+    return fit_model(demo_stages(part), kernel="periodic", period=360.0, unit="deg", n_restarts=1)
