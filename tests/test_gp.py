@@ -1021,3 +1021,20 @@ def test_a_sum_of_kernels_with_a_known_noise_also_starts_from_its_parts():
     for seed in range(3):
         fit = fit_gp(x, y, kernel=SquaredExp() + SquaredExp(), noise=noise, seed=seed)
         assert fit.log_marginal_likelihood == pytest.approx(3877.7511, abs=1e-3)
+
+
+def test_a_reading_far_beyond_the_data_gives_the_prior_without_warnings():
+    """An API review's case: a reading 1e154 or more from the data made NumPy warn of an
+    overflow in the kernel's square (the result was right: the prior)."""
+    import warnings
+
+    x = np.linspace(0, 1, 12)
+    y = x + 1e-3 * np.sin(6 * x)
+    gp = fit_gp(
+        x, y, hyperparameters={"length_scale": 0.3, "variance": 1e-6, "noise_variance": 1e-10}
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mean, std = gp.predict(np.array([1e200, -1e300]), return_std=True)
+    np.testing.assert_array_equal(mean, [1e200, -1e300])  # the identity mean
+    np.testing.assert_allclose(std, np.sqrt(1e-6), rtol=1e-12)

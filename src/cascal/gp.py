@@ -214,10 +214,11 @@ class FittedGP:
         if return_std and return_cov:
             raise InputError("predict: ask for return_std or return_cov, not both")
         xs = as_positions(x, "x")
-        if xs.size * self.x.size <= _ONE_THREAD:  # (the limit's 10 us would dominate)
-            return self._predict(xs, return_std, return_cov)
-        with single_threaded_blas():  # the same numbers whatever BLAS's threads
-            return self._predict(xs, return_std, return_cov)
+        with np.errstate(over="ignore"):  # a reading 1e154 away: (d / l)^2 is inf, k is 0
+            if xs.size * self.x.size <= _ONE_THREAD:  # (the limit's 10 us would dominate)
+                return self._predict(xs, return_std, return_cov)
+            with single_threaded_blas():  # the same numbers whatever BLAS's threads
+                return self._predict(xs, return_std, return_cov)
 
     def _predict(
         self, xs: np.ndarray, return_std: bool, return_cov: bool
