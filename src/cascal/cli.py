@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import signal
 import sys
 import time
 import warnings
@@ -1067,39 +1066,25 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cascal`` console script; returns the exit status."""
-    from .pool import Terminated, ignore_interrupts, raise_terminated
+    from .pool import sigterm_as_interrupt
 
-    own = _main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
-    if own:
-        signal.signal(signal.SIGTERM, raise_terminated)  # as Ctrl-C: outputs left whole
-    try:  # Ctrl-C while the subcommands' modules load (NumPy, SciPy: a few tenths of a s)
-        return _main(argv)
-    except KeyboardInterrupt as exc:  # a further Ctrl-C as it exits: status 130 all the same
-        _stop_listening(ignore_interrupts)
-        if isinstance(exc, Terminated):
-            print("cascal: terminated", file=sys.stderr)
-            return EXIT_TERMINATED
-        print("cascal: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    finally:  # (main called in a program of its own: its SIGTERM as it was)
-        if own and signal.getsignal(signal.SIGTERM) in (raise_terminated, signal.SIG_IGN):
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    with sigterm_as_interrupt():  # SIGTERM as Ctrl-C: outputs left whole
+        try:  # Ctrl-C while the subcommands' modules load (NumPy, SciPy: a few tenths of a s)
+            return _main(argv)
+        except KeyboardInterrupt as exc:  # a further Ctrl-C as it exits: the status all the same
+            return _stopped("cascal", exc)
 
 
-def _main_thread() -> bool:
-    import threading
+def _stopped(who: str, exc: KeyboardInterrupt) -> int:
+    """Say that the command ``who`` was interrupted (Ctrl-C) or terminated (SIGTERM), with
+    ``exc``'s text; returns the exit status."""
+    from .pool import Terminated, stop_listening
 
-    return threading.current_thread() is threading.main_thread()
-
-
-def _stop_listening(ignore_interrupts: Callable[[], None]) -> None:
-    """Ignore further Ctrl-C, and SIGTERM where the command handles it: the command is
-    ending with its message (a program's own SIGTERM handler stays)."""
-    from .pool import raise_terminated
-
-    ignore_interrupts()
-    if _main_thread() and signal.getsignal(signal.SIGTERM) is raise_terminated:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    stop_listening()
+    what = "terminated" if isinstance(exc, Terminated) else "interrupted"
+    detail = f" ({exc})" if str(exc) else ""
+    print(f"{who}: {what}{detail}", file=sys.stderr)
+    return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
 
 
 def _main(argv: Sequence[str] | None) -> int:
@@ -1146,13 +1131,7 @@ def _main(argv: Sequence[str] | None) -> int:
         )
         return EXIT_FAILURE
     except KeyboardInterrupt as exc:
-        from .pool import Terminated, ignore_interrupts
-
-        _stop_listening(ignore_interrupts)
-        what = "terminated" if isinstance(exc, Terminated) else "interrupted"
-        detail = f" ({exc})" if str(exc) else ""
-        print(f"cascal {args.command}: {what}{detail}", file=sys.stderr)
-        return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
+        return _stopped(f"cascal {args.command}", exc)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -431,9 +431,9 @@ def _fit_gp(
         )
     if known is None and not learn_noise:
         raise InputError("noise: with learn_noise=False a known noise must be given")
-    if learn_noise and hyperparameters is None:
-        _check_no_exact_repeats(xa, ya - m(xa), known, names)
     r = ya - m(xa)
+    if learn_noise and hyperparameters is None:
+        _check_no_exact_repeats(xa, r, known, names)
     if hyperparameters is None and not np.any(r) and known is None:
         raise InputError(
             f"{names[1]}: every target equals the prior mean ({m.name}) exactly, so the data "

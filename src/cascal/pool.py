@@ -35,6 +35,30 @@ def raise_terminated(signum, frame) -> None:
     raise Terminated
 
 
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Within (a command): SIGTERM raises :class:`Terminated` where it had its default
+    action, so the command leaves its outputs whole; restored on leaving (the command
+    called from a program of its own). Only in the main thread."""
+    own = _main_thread() and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    if own:
+        signal.signal(signal.SIGTERM, raise_terminated)
+    try:
+        yield
+    finally:
+        if own and signal.getsignal(signal.SIGTERM) in (raise_terminated, signal.SIG_IGN):
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def stop_listening() -> None:
+    """Ignore further Ctrl-C (:func:`ignore_interrupts`), and SIGTERM where
+    :func:`raise_terminated` handles it: the command is ending with its message (a
+    program's own SIGTERM handler stays)."""
+    ignore_interrupts()
+    if _main_thread() and signal.getsignal(signal.SIGTERM) is raise_terminated:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
 def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 

@@ -31,7 +31,7 @@ from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
 from .screening import LEVEL, Screening, Spread, repeats_screening, screen
 from .tabulate import predict_many
-from .text import exclude_spec, range_text, turn_text
+from .text import arc_text, exclude_spec, range_text
 from .validation import as_positions, check_count
 from .verification import COVERAGE_FACTOR, Comparison, Verification, compare, verify
 
@@ -50,6 +50,7 @@ __all__ = [
     "fit_devices",
     "fit_findings",
     "fit_model",
+    "measured_arc",
     "plan_measurements",
     "screen_stages",
     "shares_upstream",
@@ -444,6 +445,18 @@ def arc_width(arc: tuple[float, float], period: float) -> tuple[float, float]:
     return arc[0], float(np.mod(arc[1] - arc[0], period))
 
 
+def measured_arc(model: CalibrationModel) -> tuple[float, float] | None:
+    """For a periodic model whose device readings cover only part of the turn, that part
+    as readings ``(lo, hi)``, ``lo < hi`` (``hi`` may lie beyond the period: readings are
+    corrected as their angle), from where :func:`unmeasured_arc` ends round to where it
+    starts; None where there is no such arc."""
+    arc = unmeasured_arc(model)
+    if arc is None:
+        return None
+    start, width = arc_width(arc, float(model.period))
+    return start + width, start + float(model.period)
+
+
 def unmeasured_arc(model: CalibrationModel) -> tuple[float, float] | None:
     """For a periodic model whose device readings cover only part of the turn, the arc
     ``(start, end)`` they leave out, as angles in ``[0, period)`` (from ``start`` up to
@@ -781,17 +794,16 @@ def plan_measurements(
     upper = model.data[1].y
     if model.method == "bayes":
         x1 = model.data[1].x
-        arc = unmeasured_arc(model)
+        measured = measured_arc(model)
         if period is None:
             grid = np.linspace(float(x1.min()), float(x1.max()), _PLAN_TARGET)
             span1 = f"range {range_text(float(grid[0]), float(grid[-1]))} {unit}"
-        elif arc is None:
+        elif measured is None:
             grid = np.linspace(0.0, period, _PLAN_TARGET, endpoint=False)
             span1 = f"full turn (period {period:g})"
-        else:  # the measured part of the turn, from where the gap ends round to its start
-            measured = period - arc_width(arc, period)[1]
-            grid = np.mod(arc[1] + np.linspace(0.0, measured, _PLAN_TARGET), period)
-            span1 = turn_text(arc, unit, period)
+        else:  # the measured part of the turn
+            grid = np.mod(np.linspace(*measured, _PLAN_TARGET), period)
+            span1 = arc_text(model)
         target = LowerStage(lower, upper, grid)  # type: ignore[arg-type]
         plan = plan_reference(
             testbed, candidates, k, lower=target, noise_variance=s2, progress=progress
@@ -848,9 +860,7 @@ def summarize_device(model: CalibrationModel) -> dict[str, object]:
     a grid of 1001 readings."""
     lo, hi = model.calibrated_range
     if model.periodic:
-        period = float(model.period)
-        arc = unmeasured_arc(model)
-        lo, hi = (0.0, period) if arc is None else (sum(arc_width(arc, period)), arc[0] + period)
+        lo, hi = measured_arc(model) or (0.0, float(model.period))
     grid = np.linspace(lo, hi, _SUMMARY_GRID)
     c = correct(model, grid)
     device = model.fitted.device

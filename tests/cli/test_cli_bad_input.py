@@ -448,18 +448,19 @@ def test_a_program_s_own_sigterm_handler_survives_an_interrupted_command():
     could no longer be stopped with ``kill``. Only the command's own handler is replaced."""
     import signal
 
-    from cascal import cli
-    from cascal.pool import raise_terminated
+    from cascal.pool import raise_terminated, stop_listening
 
     def own(signum, frame):  # pragma: no cover - never called
         pass
 
     previous = signal.signal(signal.SIGTERM, own)
+    ctrl_c = signal.getsignal(signal.SIGINT)
     try:
-        cli._stop_listening(lambda: None)
+        stop_listening()
         assert signal.getsignal(signal.SIGTERM) is own
         signal.signal(signal.SIGTERM, raise_terminated)
-        cli._stop_listening(lambda: None)
+        stop_listening()
         assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGINT, ctrl_c)  # (stop_listening ignores Ctrl-C too)

@@ -207,10 +207,10 @@ def read_table(
 
 #: Stage readings must lie below this in magnitude: the fit's products of variances (the
 #: unit to the 4th power) stay finite (a stage scaled by 1e100 failed inside the fit).
-HUGE = 1e75
+STAGE_MAX = 1e75
 #: A stage column must span at least this (where it spans anything): its variances, in the
 #: unit squared, stay well above float64's smallest normal number.
-TINY = 1e-100
+STAGE_MIN_SPAN = 1e-100
 
 
 def read_stage(
@@ -237,13 +237,18 @@ def read_stage(
     """
     hint = "; choose two by name with --x-column and --y-column"
     table = read_table(
-        path, (x_column, y_column), hint=hint, min_rows=MIN_POINTS, exclude=exclude, max_abs=HUGE
+        path,
+        (x_column, y_column),
+        hint=hint,
+        min_rows=MIN_POINTS,
+        exclude=exclude,
+        max_abs=STAGE_MAX,
     )
     name = table.source.file
     x, y = table.columns
     for col, values in zip(table.source.columns, (x, y), strict=True):
         span = float(values.max() - values.min())
-        if 0 < span < TINY:  # variances, in the unit squared, would underflow
+        if 0 < span < STAGE_MIN_SPAN:  # variances, in the unit squared, would underflow
             raise InputError(
                 f"the readings in column {col!r} span only {span:.3g}: too small a scale to "
                 "compute with (variances in the unit squared underflow); use a smaller unit",
@@ -368,8 +373,7 @@ def _check_preamble(text: str, first: str, width: int, name: str) -> None:
         (
             k
             for k, later in enumerate(lines, start=1)
-            if len(cells := [c for c in _split(later) if c.strip()]) >= width
-            and all(_is_value(c) for c in cells)
+            if len(cells := _nonempty(later)) >= width and all(_is_value(c) for c in cells)
         ),
         None,
     )
@@ -412,7 +416,7 @@ _UNIT = re.compile(
 
 def _numberish(line: str) -> bool:
     """Whether every non-empty cell of ``line`` begins as a number does (a typo further on)."""
-    cells = [c for c in _split(line) if c.strip()]
+    cells = _nonempty(line)
     return bool(cells) and all(_begins_as_number(c) for c in cells)
 
 
@@ -423,7 +427,7 @@ def _begins_as_number(cell: str) -> bool:
 
 def _units(line: str) -> bool:
     """Whether every non-empty cell of ``line`` names a unit."""
-    cells = [c for c in _split(line) if c.strip()]
+    cells = _nonempty(line)
     return bool(cells) and all(_UNIT.fullmatch(c) for c in cells)
 
 
@@ -439,9 +443,14 @@ def _split(line: str) -> list[str]:
     return best
 
 
+def _nonempty(line: str) -> list[str]:
+    """The cells of ``line`` that are not empty, by the separator that gives most cells."""
+    return [c for c in _split(line) if c.strip()]
+
+
 def _widest(line: str) -> int:
-    """Cells of ``line`` that are not empty, by the separator that gives most cells."""
-    return sum(1 for c in _split(line) if c.strip())
+    """How many cells of ``line`` are not empty."""
+    return len(_nonempty(line))
 
 
 def _delimiter(text: str) -> str:

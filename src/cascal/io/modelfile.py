@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from ..baselines import OffsetTable
+from ..baselines import OffsetTable, fit_table
 from ..cascade import Cascade, FittedCascade, Stage
 from ..errors import CascalError, InputError, ModelFileError
 from ..gp import FittedGP, restore_bounds
@@ -147,8 +147,8 @@ def _per_reading(stage: Stage) -> Stage:
     if stage.noise is None or np.ndim(stage.noise) == 1:
         return stage
     n = stage.x.size
-    noise = as_noise(stage.noise, n)
-    if noise is not None and not noise.is_diagonal:
+    noise = as_noise(stage.noise, n)  # (not None: stage.noise is not)
+    if not noise.is_diagonal:
         dense = noise.dense(n)
         if np.count_nonzero(dense - np.diag(np.diag(dense))):
             raise InputError(
@@ -156,8 +156,7 @@ def _per_reading(stage: Stage) -> Stage:
                 "which a model file cannot keep (one variance per reading): save a model of "
                 "stages whose noise is a number or an (n,) vector of variances"
             )
-    diag = np.zeros(n) if noise is None else noise.diagonal(n)
-    return Stage(stage.x, stage.y, np.array(diag, dtype=float), stage.name)
+    return Stage(stage.x, stage.y, np.array(noise.diagonal(n), dtype=float), stage.name)
 
 
 def save_model(path: str | os.PathLike, model: CalibrationModel) -> Path:
@@ -521,8 +520,6 @@ def _check_table(
     """ValueError unless stage ``k``'s ``table`` is the one its readings ``x`` (n,) and
     ``targets`` (n,) give, and the targets are ``expected`` (n,): stage 0's reference
     readings, or a later stage's mapped through the table before."""
-    from ..baselines import fit_table
-
     fresh = fit_table(x, targets)
     same = np.array_equal(fresh.knots, table.knots) and np.array_equal(fresh.offsets, table.offsets)
     if not same:
