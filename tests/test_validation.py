@@ -263,8 +263,10 @@ def test_a_position_repeated_exactly_is_refused_where_the_noise_is_learned():
     likelihood grow without bound as the noise went to 0: the fit took the noise as
     signal (u 10 times below the error). Such a pair is now refused with the remedy, as
     contradicting ones are. With a known noise at either reading, or given
-    hyperparameters, it stays; and so do a periodic kernel's readings a turn apart with
-    the same correction (a lead screw's grid: averaging cannot merge them)."""
+    hyperparameters, it stays. To the periodic kernel, readings whole periods apart are one
+    position: with the same correction (to the round-off of y - x) they are refused too,
+    with their own remedy (averaging cannot merge them: keep one), also across the turn's
+    end and over several turns; with a correction that differs, they stay."""
     x = np.array([0.0, 0.2, 0.35, 0.5, 0.65, 0.8])
     y = x + 0.01 * np.sin(2 * np.pi * x)
     xx, yy = np.r_[x, x[1]], np.r_[y, y[1]]
@@ -276,7 +278,18 @@ def test_a_position_repeated_exactly_is_refused_where_the_noise_is_learned():
     assert np.isfinite(fit_gp(xx, yy, noise=one_known, learn_noise=True).noise_variance)
     assert fit_gp(xx, yy, hyperparameters=HP).noise_variance == HP["noise_variance"]
     turn = np.r_[x, x[1] + 1.0], np.r_[y, y[1] + 1.0]  # one period on, the same correction
-    assert np.isfinite(fit_gp(*turn, kernel="periodic", period=1.0).noise_variance)
+    assert turn[1][-1] - turn[0][-1] != y[1] - x[1]  # equal only to round-off
+    with pytest.raises(InputError, match=r"0.2 and 1.2, whole periods apart, at indices 1 and 6"):
+        fit_gp(*turn, kernel="periodic", period=1.0)
+    with pytest.raises(InputError, match=r"keep one of them"):
+        fit_gp(*turn, kernel="periodic", period=1.0, seed=3)
+    # across the end of the turn (phases 0.9999... and 0), and three turns on
+    end = np.r_[x, -1.0, 3.8], np.r_[y, y[0] - 1.0, y[5] + 3.0]
+    with pytest.raises(InputError, match=r"0.0 and -1.0, whole periods apart, at indices 0 and 6"):
+        fit_gp(*end, kernel="periodic", period=1.0)
+    moved = np.r_[x, x[1] + 1.0], np.r_[y, y[1] + 1.0 + 1e-4]
+    assert np.isfinite(fit_gp(*moved, kernel="periodic", period=1.0).noise_variance)
+    assert np.isfinite(fit_gp(*turn, kernel="se").noise_variance)  # not one position there
 
 
 def test_api_misuse_is_an_input_error():

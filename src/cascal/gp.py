@@ -433,7 +433,7 @@ def _fit_gp(
         raise InputError("noise: with learn_noise=False a known noise must be given")
     r = ya - m(xa)
     if learn_noise and hyperparameters is None:
-        _check_no_exact_repeats(xa, r, known, names)
+        _check_no_exact_repeats(xa, r, known, names, kern)
     if hyperparameters is None and not np.any(r) and known is None:
         raise InputError(
             f"{names[1]}: every target equals the prior mean ({m.name}) exactly, so the data "
@@ -781,28 +781,47 @@ def _restrict(noise: Noise, idx: np.ndarray, n: int) -> Noise:
 
 
 def _check_no_exact_repeats(
-    x: np.ndarray, r: np.ndarray, known: Noise | None, names: tuple[str, str]
+    x: np.ndarray, r: np.ndarray, known: Noise | None, names: tuple[str, str], kern: Kernel
 ) -> None:
     """Refuse a position read twice with the same correction ``r`` and no known noise at
     either reading (contradicting targets are refused before): the learned noise's
     likelihood then grows without bound as that noise goes to 0, and the fit reads the
     noise as signal (a review: 12 readings with one pair repeated ended with u 10 times
-    below the error). ``x``, ``r``: shape (n,)."""
-    order = np.argsort(x, kind="stable")
-    xs, rs = x[order], r[order]
-    same = np.flatnonzero((xs[1:] == xs[:-1]) & (rs[1:] == rs[:-1]))
+    below the error). For the periodic kernel, readings a whole number of periods apart
+    (to round-off) are the same position. ``x``, ``r``: shape (n,)."""
+    period = kern.period if isinstance(kern, Periodic) else None
+    key = x if period is None else np.mod(x, period)
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    if period is None:
+        pairs = np.stack([order[:-1], order[1:]], axis=1)[ks[1:] == ks[:-1]]
+        same = pairs[r[pairs[:, 0]] == r[pairs[:, 1]]]
+    else:  # neighbours in phase, the last and the first across the turn's end included;
+        # a position and the correction then match to the round-off of x mod period, y - x
+        tol = 8.0 * np.finfo(float).eps * max(float(np.max(np.abs(x))), period)
+        gaps = np.append(np.diff(ks), ks[0] + period - ks[-1])
+        pairs = np.stack([order, np.roll(order, -1)], axis=1)[gaps <= tol]
+        same = pairs[np.abs(r[pairs[:, 0]] - r[pairs[:, 1]]) <= tol]
     if not same.size:
         return
     var = np.zeros(x.size) if known is None else known.diagonal(x.size)
-    for k in same:
-        i, j = sorted((int(order[k]), int(order[k + 1])))
-        if var[i] == 0.0 and var[j] == 0.0:
-            raise InputError(
-                f"{names[0]}: the same position {float(x[i])!r} at indices {i} and {j}, with "
-                "the same correction and no known noise: a learned noise would take the pair "
-                "as noise-free; average repeated readings (cascal.aggregate_repeats) so "
-                "they become one point with a known noise variance"
+    for pair in same:
+        i, j = sorted(int(v) for v in pair)
+        if i == j or var[i] != 0.0 or var[j] != 0.0:
+            continue
+        if x[i] == x[j]:
+            where = f"the same position {float(x[i])!r}"
+            fix = (
+                "average repeated readings (cascal.aggregate_repeats) so they become one "
+                "point with a known noise variance"
             )
+        else:
+            where = f"positions {float(x[i])!r} and {float(x[j])!r}, whole periods apart,"
+            fix = "keep one of them: to the periodic kernel they are one position"
+        raise InputError(
+            f"{names[0]}: {where} at indices {i} and {j}, with the same correction and no "
+            f"known noise: a learned noise would take the pair as noise-free; {fix}"
+        )
 
 
 def _below_floor(b: np.ndarray) -> np.ndarray:
