@@ -9,7 +9,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import stat
 import sys
+import tempfile
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -85,13 +87,27 @@ def check_output(
             raise InputError(
                 f"{option} {p}: is an input of this command ({other}); not overwritten"
             )
-    parent = (p if folder else p.parent).absolute()
+    try:
+        mode = os.stat(p).st_mode  # through links
+    except OSError:
+        mode = None
+    if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        return  # a device or a named pipe: written in place
+    target = Path(os.path.realpath(p)) if p.is_symlink() else p  # a link's file is replaced
+    parent = (target if folder else target.parent).absolute()
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
         raise InputError(f"{option} {p}: {parent} is a file, not a folder")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise InputError(f"{option} {p}: no permission to write in {parent}")
+    try:  # what the write will do first (root passes os.access on a read-only /proc too)
+        fd, probe = tempfile.mkstemp(prefix=".cascal-probe.", dir=parent)
+    except OSError as exc:
+        why = f"cannot create a file in {parent}: {exc.strerror}"
+        raise InputError(f"{option} {p}: {why}") from None
+    os.close(fd)
+    os.unlink(probe)
 
 
 def check_outputs(output: str | None, plot: str | None, inputs: Sequence[str | Path]) -> None:

@@ -11,6 +11,7 @@ from cli_helpers import assert_refused, run_bad_cases, run_cascal
 
 from cascal.cli import check_output, join_negative, same_file
 from cascal.demo import rotary_demo
+from cascal.errors import InputError
 from cascal.io.modelfile import load_model, save_model
 from cascal.planning import covered, find_gaps
 from cascal.plots import _wrapped
@@ -251,3 +252,20 @@ def bad_runs(linear_model, tmp_path_factory):
 )
 def test_bad_input_exits_2_and_writes_nothing(bad_runs, name):
     assert_refused(*bad_runs[name])
+
+
+@pytest.mark.skipif(not os.path.isfile("/proc/version"), reason="needs Linux's /proc")
+def test_an_output_where_no_file_can_be_made_is_refused_before_work(tmp_path):
+    """A leftover of an earlier review: ``-o /proc/version`` passed the permission check
+    (root may write anywhere, by os.access) and failed only when written, after the fit,
+    with "No such file" and status 1. The check now makes (and removes) a file where the
+    write will make its temporary one: through a link too, to the link's target."""
+    for dest in ("/proc/version", "/proc/no/such.json"):
+        with pytest.raises(InputError, match=r"cannot create a file in /proc"):
+            check_output(dest)
+    (tmp_path / "link.json").symlink_to("/proc/version")
+    with pytest.raises(InputError, match=r"-o .*link.json: cannot create a file in /proc"):
+        check_output(tmp_path / "link.json")
+    check_output(tmp_path / "new" / "m.json")
+    check_output(tmp_path, folder=True)
+    assert [p.name for p in tmp_path.iterdir()] == ["link.json"]  # no probe left behind
