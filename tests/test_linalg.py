@@ -16,7 +16,7 @@ from cascal.linalg import (
     logdet,
     pivots_ok,
 )
-from utils import assert_allclose, se
+from utils import assert_allclose, dense_lml, se
 
 
 @pytest.fixture
@@ -163,3 +163,27 @@ def test_a_noiseless_factor_beyond_round_off_conditioning_gets_jitter():
     well = SquaredExp(0.02, 1e-6)(x)  # condition 4.7e4: kept as it is
     L, jitter = cholesky(well, noiseless=True)
     assert jitter == 0.0 and pivots_ok(L, well)
+
+
+def test_a_singular_known_noise_with_correlations_and_no_white_noise_gets_jitter():
+    """A review's case: a shared offset of known variance (``1e-10`` everywhere, rank 1) as
+    the whole noise, no white noise: ``K + N`` (condition 2.8e16) factorised with no jitter
+    and a likelihood off by half (-2.03e7 against -1.37e7 in 80-digit arithmetic). Its
+    positive diagonal had counted as noise; a noise with correlations bounds no pivot
+    below, so the factor is checked as a noiseless one's, jitter recorded and warned of.
+    A well-conditioned dense noise keeps its exact factor."""
+    n = 20
+    x = np.linspace(0, 1, n)
+    y = x + 1e-4 * np.sin(3 * x) + 1e-7 * np.random.default_rng(0).standard_normal(n)
+    hp = {"length_scale": 0.2, "variance": 1e-6}
+    shared = 1e-10 * np.ones((n, n))
+    fit = fit_gp(x, y, noise=shared, learn_noise=False, hyperparameters=hp)
+    assert fit.jitter > 0.0
+    with pytest.warns(JitterWarning, match="needed jitter"):
+        value = log_marginal_likelihood(x, y, kernel=SquaredExp(0.2, 1e-6), noise=shared)
+    assert value == fit.log_marginal_likelihood
+    full = shared + 1e-9 * np.eye(n)  # the same offset beside a white part: no jitter
+    fit = fit_gp(x, y, noise=full, learn_noise=False, hyperparameters=hp)
+    Kt = se(x, x, 0.2, 1e-6) + full
+    assert fit.jitter == 0.0
+    assert fit.log_marginal_likelihood == pytest.approx(dense_lml(y - x, Kt), rel=1e-12)
