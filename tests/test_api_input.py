@@ -11,7 +11,7 @@ import pytest
 
 from cascal import Cascade, InputError, fit_gp, log_marginal_likelihood
 from cascal.baselines import OffsetTable
-from cascal.kernels import SquaredExp
+from cascal.kernels import Periodic, SquaredExp
 from cascal.noise import Diagonal
 
 HP = {"length_scale": 0.3, "variance": 1e-4, "noise_variance": 1e-8}
@@ -113,6 +113,11 @@ def test_numpy_numbers_and_complex_values(data):
         ((), {"kernel": "bogus"}, "unknown kernel 'bogus'"),
         ((), {"mean": "bogus"}, "unknown mean 'bogus'"),
         ((), {"period": 360.0}, "period: only the periodic kernel"),
+        (  # a review: this had said "only the periodic kernel has one" of a periodic one
+            (),
+            {"period": 1.0, "kernel": SquaredExp() * Periodic(period=1.0)},
+            "period: a kernel object carries its own (Periodic(period=...)); give it there",
+        ),
         ((), {"method": "gp"}, "method: expected one of"),
     ],
 )

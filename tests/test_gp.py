@@ -1038,3 +1038,18 @@ def test_a_reading_far_beyond_the_data_gives_the_prior_without_warnings():
         mean, std = gp.predict(np.array([1e200, -1e300]), return_std=True)
     np.testing.assert_array_equal(mean, [1e200, -1e300])  # the identity mean
     np.testing.assert_allclose(std, np.sqrt(1e-6), rtol=1e-12)
+
+
+def test_corrections_all_zero_with_a_known_noise_fit_alike_in_any_unit():
+    """A review's case: every correction exactly 0 (a reference rounded to the readings'
+    digits) with a known noise of sd 0.1 mm. The variances' bounds fell back to 1 in the
+    data's unit squared before the known noise was consulted, so u came out 2.2e-5 m, 1e-6
+    m and 1e-7 m for the same data in m, mm and um. The known noise now sets the scale."""
+    x = np.linspace(0, 1, 20)
+    u = []
+    for s in (1.0, 1e3, 1e6):
+        fit = fit_gp(s * x, s * x, noise=(1e-4 * s) ** 2)
+        u.append(fit.predict(s * np.array([0.5, 3.0]), return_std=True)[1] / s)
+        assert np.exp(fit.optimization.bounds[1, 1]) / s**2 == pytest.approx(1e-4, rel=1e-12)
+    assert_allclose(u[1], u[0], rtol=1e-9)
+    assert_allclose(u[2], u[0], rtol=1e-9)

@@ -316,6 +316,13 @@ class Product(_Binary):
 KERNEL_NAMES = ("se", "matern32", "matern52", "periodic")
 
 
+def _has_periodic(kernel: Kernel) -> bool:
+    """Whether ``kernel`` is or holds a :class:`Periodic` one."""
+    if isinstance(kernel, _Binary):
+        return _has_periodic(kernel.left) or _has_periodic(kernel.right)
+    return isinstance(kernel, Periodic)
+
+
 def make_kernel(
     name: str | Kernel,
     *,
@@ -329,6 +336,11 @@ def make_kernel(
     takes one.
     """
     if period is not None and not (isinstance(name, str) and name.lower() == "periodic"):
+        if isinstance(name, Kernel) and _has_periodic(name):
+            raise InputError(
+                f"period: a kernel object carries its own (Periodic(period=...)); give it "
+                f"there alone, got period={period!r} beside {name!r}"
+            )
         raise InputError(f"period: only the periodic kernel has one, got kernel {name!r}")
     if isinstance(name, Kernel):
         return name

@@ -347,10 +347,11 @@ def search_bounds(
     gaps = xs[1:] - xs[:-1]
     gaps = gaps[gaps > 0]  # the distinct positions' gaps
     gap = float(gaps.min()) if gaps.size else span
-    n = r.size  # the variance (as np.var), else the mean square, else 1
-    v = float(np.square(r - r.mean()).sum()) / n or float(np.square(r).sum()) / n or 1.0
+    n = r.size  # the variance (as np.var), else the mean square, at least the known noise's
+    v = float(np.square(r - r.mean()).sum()) / n or float(np.square(r).sum()) / n
     if known is not None:
         v = max(v, float(np.mean(known.diagonal(r.size))))
+    v = v or 1.0  # no scale in the data at all (every correction 0, no known noise)
     rows: dict[str, tuple[float, float]] = {}
     for name, (leaf, unit) in zip(kernel.names, _leaves(kernel), strict=True):
         if name.rsplit("_", 2)[-2:] == ["length", "scale"]:
