@@ -188,3 +188,26 @@ def test_submodules_are_attributes_after_a_plain_import():
         "fit_model verify CompensationTable True",
         "module 'cascal' has no attribute 'no_such_name'",
     ]
+
+
+def test_a_stage_beyond_float64s_scales_is_refused_by_name():
+    """A review's cases: data scaled by 1e200 failed inside the fit with a NumericalError
+    and some 60 NumPy overflow warnings, data scaled by 1e-200 with a message about a
+    length scale never given. The limits are the CSV reader's (values below 1e75, a span
+    of positions above 1e-100); a stage at 1e74 still fits."""
+    x = np.linspace(0.0, 1.0, 20)
+    y = x + 1e-3 * np.sin(5 * x)
+    with pytest.raises(InputError, match=r"x: a value of 1e\+200 in magnitude: .*larger unit"):
+        fit_gp(1e200 * x, 1e200 * y)
+    with pytest.raises(InputError, match=r"y: a value of 1e\+75 in magnitude"):
+        fit_gp(x, np.r_[y[:-1], 1e75])
+    with pytest.raises(InputError, match=r"x: the positions span only 1e-200: .*smaller unit"):
+        fit_gp(1e-200 * x, 1e-200 * y)
+    with pytest.raises(InputError, match=r"testbed x: a value of 1e\+200"):
+        Cascade([(1e200 * x, 1e200 * y)]).fit()
+    y = y + 1e-5 * np.random.default_rng(0).standard_normal(20)  # an optimum off the floor
+    big, small = fit_gp(1e74 * x, 1e74 * y), fit_gp(x, y)
+    for name, power in (("length_scale", 1), ("variance", 2), ("noise_variance", 2)):
+        assert big.hyperparameters[name] == pytest.approx(
+            1e74**power * small.hyperparameters[name], rel=1e-5
+        )

@@ -25,7 +25,7 @@ from .likelihood import Objective, noiseless, search_bounds, theta_names
 from .means import Mean, make_mean
 from .noise import Dense, Diagonal, Noise, as_noise
 from .optimize import BOUND_TOL, OptimResult, _safe, maximize, newton_maximize
-from .validation import as_positions, check_count, check_pair, frozen
+from .validation import as_positions, check_count, check_pair, check_scale, frozen
 
 __all__ = ["FittedGP", "Objective", "Posterior", "fit_gp", "log_marginal_likelihood"]
 
@@ -409,6 +409,7 @@ def _fit_gp(
     x, y, kernel, mean, noise, learn_noise, hyperparameters, n_restarts, seed, period, bounds, names
 ) -> FittedGP:
     xa, ya = check_pair(x, y, names)
+    check_scale(xa, ya, names)
     n = xa.size
     check_count(n_restarts, "n_restarts", "optimiser starts", 1)
     if not (seed is None or isinstance(seed, np.random.SeedSequence | np.random.Generator)):

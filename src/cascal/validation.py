@@ -10,18 +10,27 @@ from .errors import InputError
 
 __all__ = [
     "MIN_POINTS",
+    "STAGE_MAX",
+    "STAGE_MIN_SPAN",
     "Repeats",
     "aggregate_repeats",
     "as_positions",
     "check_count",
     "check_increasing",
     "check_pair",
+    "check_scale",
     "frozen",
     "unwrap",
 ]
 
 #: Fewest points a stage fit accepts.
 MIN_POINTS = 3
+#: Stage values must lie below this in magnitude: the fit's products of variances (the
+#: unit to the 4th power) stay finite (a stage scaled by 1e100 failed inside the fit).
+STAGE_MAX = 1e75
+#: A stage's positions must span at least this (where they span anything): its variances,
+#: in the unit squared, stay well above float64's smallest normal number.
+STAGE_MIN_SPAN = 1e-100
 
 
 def as_positions(a: object, name: str) -> np.ndarray:
@@ -113,6 +122,29 @@ def check_pair(
             "(cascal.aggregate_repeats) so their spread becomes a known noise variance"
         )
     return xa, ya
+
+
+def check_scale(x: np.ndarray, y: np.ndarray, names: tuple[str, str] = ("x", "y")) -> None:
+    """Refuse a stage (``x``, ``y``: (n,)) whose values reach :data:`STAGE_MAX` in magnitude
+    or whose positions span less than :data:`STAGE_MIN_SPAN`: scales whose variances
+    float64 cannot hold.
+
+    Raises:
+        InputError: Naming the value or the span and the remedy, another unit.
+    """
+    for name, v in zip(names, (x, y), strict=True):
+        big = float(np.max(np.abs(v), initial=0.0))
+        if big >= STAGE_MAX:
+            raise InputError(
+                f"{name}: a value of {big:.3g} in magnitude: too large a scale to compute "
+                f"with (variances in the unit squared overflow); use a larger unit"
+            )
+    span = float(np.max(x) - np.min(x)) if x.size else 0.0
+    if 0.0 < span < STAGE_MIN_SPAN:
+        raise InputError(
+            f"{names[0]}: the positions span only {span:.3g}: too small a scale to compute "
+            "with (variances in the unit squared underflow); use a smaller unit"
+        )
 
 
 def check_increasing(x: np.ndarray, y: np.ndarray, names: tuple[str, str] = ("x", "y")) -> None:

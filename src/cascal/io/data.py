@@ -25,7 +25,7 @@ import numpy as np
 
 from ..cascade import Stage
 from ..errors import DataWarning, InputError
-from ..validation import MIN_POINTS, aggregate_repeats, unwrap
+from ..validation import MIN_POINTS, STAGE_MAX, STAGE_MIN_SPAN, aggregate_repeats, unwrap
 
 __all__ = [
     "Source",
@@ -203,14 +203,6 @@ def read_table(
                     column=column,
                 )
     return Table(cols, rows, Source(name, digest, int(rows.size), names, tuple(sorted(skip))))
-
-
-#: Stage readings must lie below this in magnitude: the fit's products of variances (the
-#: unit to the 4th power) stay finite (a stage scaled by 1e100 failed inside the fit).
-STAGE_MAX = 1e75
-#: A stage column must span at least this (where it spans anything): its variances, in the
-#: unit squared, stay well above float64's smallest normal number.
-STAGE_MIN_SPAN = 1e-100
 
 
 def read_stage(
