@@ -142,3 +142,18 @@ def _partial_turn_model():
     keep = (dev.x < 150.0) | (dev.x > 250.0)
     part = replace(case, stages=(case.stages[0], replace(dev, x=dev.x[keep], y=dev.y[keep])))
     return fit_model(demo_stages(part), kernel="periodic", period=360.0, unit="deg", n_restarts=1)
+
+
+def test_a_measured_arc_is_printed_rounded_inward():
+    """A CLI review's case: a swivel's measured arc from 6.8363821941 deg was printed from
+    6.83638219 (plain 9 digits, rounded outward), and ``correct`` flagged a reading of the
+    printed start. Its ends are now rounded inward, as a linear range's are; the arc left
+    out, the same two numbers the other way round, so outward."""
+    from cascal.text import measured_ends, turn_text
+
+    arc = (199.115860006, 6.8363821941)  # left out from 199.1... round to 6.83...
+    assert measured_ends(arc) == ("6.8363822", "199.11586")
+    assert measured_ends((10.0, 350.0)) == ("350", "10")  # exact ends stay as they are
+    text = turn_text(arc, "deg", 360.0)
+    assert text.startswith("6.8363822 to 199.11586 deg of the turn (period 360;")
+    assert "leave out 199.11586 to 6.8363822 deg" in text

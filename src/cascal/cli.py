@@ -337,7 +337,7 @@ def _cmd_correct(args: argparse.Namespace) -> int:
 
     from .io.csvout import auto_decimals, exact_decimals, write_columns
     from .io.data import read_readings
-    from .text import range_text
+    from .text import measured_ends, range_text
     from .workflow import correct, far_off, unmeasured_arc
 
     check_output(args.output, inputs=(args.model, args.readings))
@@ -353,9 +353,10 @@ def _cmd_correct(args: argparse.Namespace) -> int:
     if model.periodic:  # every turn is calibrated: only a reading too large is flagged
         where = "so far out that a float64 holds them less finely than their u"
         if arc is not None:
+            a, b = measured_ends(arc)
             where = (
-                f"in the part of the turn the device readings leave out ({arc[0]:.9g} to "
-                f"{arc[1]:.9g} {model.unit}), or {where}"
+                f"in the part of the turn the device readings leave out ({b} to {a} "
+                f"{model.unit}), or {where}"
             )
     unit_hint = ""
     if n_out == out.size > 1 and not model.periodic and far_off(c.reading, lo, hi):

@@ -28,7 +28,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     from .io.atomic import save_figure
     from .io.csvout import auto_decimals, exact_decimals, write_columns
     from .io.data import check_units, read_table
-    from .text import range_text
+    from .text import measured_ends, range_text
     from .verification import expected_within
     from .workflow import verify_model
 
@@ -58,8 +58,9 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         where = f"the range a float64 holds to better than u (any turn of {model.period:g} {unit})"
         arc = unmeasured_arc(model)
         if arc is not None:
+            a, b = measured_ends(arc)
             where = (
-                f"the arc {arc[1]:.9g} to {arc[0]:.9g} {unit} (of any turn of "
+                f"the arc {a} to {b} {unit} (of any turn of "
                 f"{model.period:g} {unit}) that the device readings cover"
             )
     if s["points"] == 0:

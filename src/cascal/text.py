@@ -11,6 +11,7 @@ __all__ = [
     "exclude_spec",
     "finding_line",
     "hyperparameter_unit",
+    "measured_ends",
     "range_text",
     "turn_text",
     "understates_u",
@@ -73,12 +74,23 @@ def arc_text(model) -> str | None:
 
 
 def turn_text(arc: tuple[float, float], unit: str, period: float) -> str:
-    """:func:`arc_text` of the arc ``(start, end)`` the device readings leave out."""
-    (left, back), u = arc, unit  # measured from where the gap ends round to its start
+    """:func:`arc_text` of the arc ``(start, end)`` the device readings leave out. The
+    measured arc is rounded inward (a reading inside the printed one is inside the true
+    one), which rounds the arc left out outward: the same two numbers."""
+    a, b = measured_ends(arc)
+    u = unit
     return (
-        f"{back:.9g} to {left:.9g} {u} of the turn (period {period:g}; the device "
-        f"readings leave out {left:.9g} to {back:.9g} {u}: readings there are flagged)"
+        f"{a} to {b} {u} of the turn (period {period:g}; the device "
+        f"readings leave out {b} to {a} {u}: readings there are flagged)"
     )
+
+
+def measured_ends(arc: tuple[float, float]) -> tuple[str, str]:
+    """The measured part of a turn whose device readings leave out ``arc`` (start, end):
+    from the gap's end round to its start, printed to 9 digits rounded inward (so the arc
+    left out, from the second to the first, is rounded outward)."""
+    left, back = arc
+    return _inward(back, 9, ROUND_CEILING), _inward(left, 9, ROUND_FLOOR)
 
 
 def hyperparameter_unit(name: str, unit: str, periodic: bool) -> str:

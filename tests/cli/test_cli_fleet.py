@@ -376,6 +376,7 @@ def test_a_partly_measured_rotary_device_is_named_in_the_summary(tmp_path):
     "ok" with no word of it (``cascal fit`` names the arc its readings leave out); the
     fleet now warns of it, and the summary's warnings column carries it."""
     from cascal.demo import rotary_demo
+    from cascal.text import measured_ends
 
     testbed, device = rotary_demo(0).stages
     tb = tmp_path / "testbed.csv"
@@ -389,7 +390,9 @@ def test_a_partly_measured_rotary_device_is_named_in_the_summary(tmp_path):
     res = run_cascal("fit-devices", tb, "--devices", folder, "-o", out, "--kernel", "periodic",
                      "--period", "360", "--unit", "deg", "--restarts", "1")  # fmt: skip
     assert res.returncode == 0, res.stderr
-    left = f"{device.x[keep].max():.9g} to {device.x[keep].min():.9g} deg"
+    start, end = measured_ends((float(device.x[keep].max()), float(device.x[keep].min())))
+    assert float(start) >= device.x[keep].min() and float(end) <= device.x[keep].max()
+    left = f"{end} to {start} deg"  # the arc left out, rounded outward
     assert "warning: part: calibrated over " in res.stderr and f"leave out {left}" in res.stderr
     assert "full: calibrated over" not in res.stderr
     with open(out / "fleet_summary.csv", newline="") as fh:
