@@ -157,3 +157,18 @@ def test_a_measured_arc_is_printed_rounded_inward():
     text = turn_text(arc, "deg", 360.0)
     assert text.startswith("6.8363822 to 199.11586 deg of the turn (period 360;")
     assert "leave out 199.11586 to 6.8363822 deg" in text
+
+
+def test_a_reading_named_in_a_range_is_printed_within_it():
+    """A CLI review's case: compare printed its common range as ending at 0.940129142
+    (rounded inward) and its largest change "at reading 0.940129143", the same end
+    rounded up. A reading is now kept within the printed range."""
+    from cascal.text import range_ends, range_text, reading_in_range
+
+    lo, hi = 0.09807420485, 0.9401291429443
+    assert range_text(lo, hi) == "[0.0980742049, 0.940129142]"
+    assert range_ends(lo, hi) == ("0.0980742049", "0.940129142")
+    assert f"{hi:.9g}" == "0.940129143"
+    assert reading_in_range(hi, lo, hi) == "0.940129142"
+    assert reading_in_range(lo, lo, hi) == "0.0980742049"
+    assert reading_in_range(0.5, lo, hi) == "0.5"

@@ -14,7 +14,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from .cli import EXIT_NOT_CONFORMING, check_outputs, load_checked, warn, write_outputs
     from .io.atomic import save_figure
     from .io.csvout import auto_decimals, write_columns
-    from .text import range_text
+    from .text import range_text, reading_in_range
     from .verification import BAND_LEVEL
     from .workflow import compare_models
 
@@ -46,9 +46,11 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         f"  old: fitted {old.created}, method {old.method}; new: fitted {new.created}, "
         f"method {new.method}"
     )
+    lo, hi = float(c.reading[0]), float(c.reading[-1])
+    at = f"{s['at']:.9g}" if old.periodic else reading_in_range(s["at"], lo, hi)
     print(
         f"  change of the correction (new - old): RMS {s['rms_change']:.4g} {unit}, largest "
-        f"{s['max_change']:.4g} {unit} at reading {s['at']:.9g}"
+        f"{s['max_change']:.4g} {unit} at reading {at}"
     )
     fig = None
     if args.plot is not None:  # drawn before anything is written
@@ -71,7 +73,9 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             f"an unchanged device's |change| / u stays below {c.k_band:.2f} over the whole "
             f"range with {100 * BAND_LEVEL:g} % probability"
         )
-        print(f"  largest |change| / u {s['max_z']:.3g}, at reading {s['max_z_at']:.9g}; {band}")
+        z_at = s["max_z_at"]
+        z_at = f"{z_at:.9g}" if old.periodic else reading_in_range(z_at, lo, hi)
+        print(f"  largest |change| / u {s['max_z']:.3g}, at reading {z_at}; {band}")
         if c.changed:
             print(
                 f"  beyond that band over {100 * s['share_beyond_band']:.1f} % of the range: "
@@ -108,7 +112,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         print(
             f"Changed by more than --max-change {args.max_change:g} {unit} over "
             f"{100 * beyond:.1f} % of the range (largest {s['max_change']:.4g} {unit} at reading "
-            f"{s['at']:.9g})."
+            f"{at})."
         )
         return EXIT_NOT_CONFORMING
     print(f"Within --max-change {args.max_change:g} {unit} everywhere.")

@@ -12,7 +12,9 @@ __all__ = [
     "finding_line",
     "hyperparameter_unit",
     "measured_ends",
+    "range_ends",
     "range_text",
+    "reading_in_range",
     "turn_text",
     "understates_u",
 ]
@@ -47,11 +49,27 @@ def range_text(lo: float, hi: float, digits: int = 9) -> str:
     printed a range ending at 0.9493815934 as ending at 0.949382, holding readings that
     ``correct`` flags). An end that ``digits`` digits give exactly is printed so (0.1, not
     0.100000001, whose double is a little above 0.1)."""
+    a, b = range_ends(lo, hi, digits)
+    return f"[{a}, {b}]"
+
+
+def range_ends(lo: float, hi: float, digits: int = 9) -> tuple[str, str]:
+    """The two ends :func:`range_text` prints."""
     for d in range(digits, 18):
         a, b = _inward(lo, d, ROUND_CEILING), _inward(hi, d, ROUND_FLOOR)
         if float(a) <= float(b) or d == 17:
-            return f"[{a}, {b}]"
+            return a, b
     raise AssertionError("unreachable")  # pragma: no cover
+
+
+def reading_in_range(v: float, lo: float, hi: float, digits: int = 9) -> str:
+    """A reading ``v`` of the range ``[lo, hi]`` to ``digits`` digits, kept within the
+    range as :func:`range_text` prints it (a reading at an end is printed as that end: a
+    compare had named its largest change at 0.940129143 of a range printed to end at
+    0.940129142)."""
+    a, b = range_ends(lo, hi, digits)
+    text = f"{v:.{digits}g}"
+    return b if float(text) > float(b) else a if float(text) < float(a) else text
 
 
 def _inward(v: float, digits: int, rounding: str) -> str:
