@@ -73,6 +73,16 @@ FIT_CASES = {
         [],
         ["row 4", "not above", "2 of its 6 steps go back", "closer together than"],
     ),
+    "stuck_reference": (  # a review: flat steps had been said to "go back"
+        "a,b\n1,0.5\n2,0.5\n3,0.5\n4,0.5\n",
+        [],
+        ["3 of its 3 steps are flat (b the same at other a)", "did not move, or a constant"],
+    ),
+    "flat_steps_among_rising_ones": (
+        "a,b\n1,1\n2,2\n3,2\n4,4\n5,5\n6,5\n7,7\n",
+        [],
+        ["not above", "2 of its 6 steps are flat", "closer together than the readings' resolution"],
+    ),
     "periodic_without_period": (GOOD, ["--kernel", "periodic"], ["--period"]),
     "negative_period": (GOOD, ["--kernel", "periodic", "--period", "-3"], ["--period", "positive"]),
 }

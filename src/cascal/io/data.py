@@ -297,12 +297,22 @@ def read_stage(
         culprit = members[np.argmax(y[members]) if high else np.argmin(y[members])]
 
         steps = rep.y.size - 1
+        flat = int(np.count_nonzero(np.diff(rep.y) == 0))
         hint = f"; {bad.size} of its {steps} steps go back: " + (
             "is one sensor's direction reversed, or are the columns swapped?"
             if 2 * bad.size > steps
             else "are the points closer together than the readings' noise? Then repeat "
             "readings at fewer, wider-spaced positions (repeats are averaged)"
         )
+        if flat == bad.size:  # none goes back: the more accurate reading stands still
+            hint = (
+                f"; {flat} of its {steps} steps are flat ({yn} the same at other {xn}): "
+                + (
+                    f"is column {yn!r} a sensor that did not move, or a constant?"
+                    if 2 * flat > steps
+                    else "are the points closer together than the readings' resolution?"
+                )
+            )
         if bad.size == 1:  # (a wrong reading of xn moves its point among others)
             hint = f"; a mistyped cell (of {yn} or of {xn}), or rows out of step?"
         raise InputError(
