@@ -305,13 +305,10 @@ def read_stage(
             "readings at fewer, wider-spaced positions (repeats are averaged)"
         )
         if flat == bad.size:  # none goes back: the more accurate reading stands still
-            hint = (
-                f"; {flat} of its {steps} steps are flat ({yn} the same at other {xn}): "
-                + (
-                    f"is column {yn!r} a sensor that did not move, or a constant?"
-                    if 2 * flat > steps
-                    else "are the points closer together than the readings' resolution?"
-                )
+            hint = f"; {flat} of its {steps} steps are flat ({yn} the same at other {xn}): " + (
+                f"is column {yn!r} a sensor that did not move, or a constant?"
+                if 2 * flat > steps
+                else "are the points closer together than the readings' resolution?"
             )
         if bad.size == 1:  # (a wrong reading of xn moves its point among others)
             hint = f"; a mistyped cell (of {yn} or of {xn}), or rows out of step?"
