@@ -224,6 +224,40 @@ def test_rotary_models_are_compared_over_one_turn():
     assert np.all(np.abs(c.change - 1e-3) < 3e-4)  # the offset, all the way round
 
 
+def test_rotary_models_are_compared_over_the_arc_both_devices_cover(monkeypatch):
+    """A review's case: a swivel's device readings covering 7 to 199 deg were compared over
+    the whole turn, where both models only extrapolate: a change of 0.0074 deg there failed
+    a --max-change that the measured arc passed (0.00032). The readings now span the part
+    both cover; two arcs that overlap at both ends give two stretches, and arcs that do not
+    overlap are refused."""
+    from cascal import workflow
+    from cascal.demo import rotary_demo
+
+    ref, dev = demo_stages(rotary_demo(0))
+    kw = dict(kernel="periodic", period=360.0, unit="deg", n_restarts=1)
+    testbed = fit_model([ref], **kw)
+    part = dev.x < 200.0
+    old = fit_model([dataclasses.replace(dev, x=dev.x[part], y=dev.y[part])], prefix=testbed, **kw)
+    late = (dev.x > 50.0) & (dev.x < 300.0)
+    new = fit_model([dataclasses.replace(dev, x=dev.x[late], y=dev.y[late])], prefix=testbed, **kw)
+    c = compare_models(old, new, n=101)
+    lo, hi = dev.x[late].min(), dev.x[part].max()
+    np.testing.assert_allclose(c.reading, np.linspace(lo, hi, 101), rtol=0, atol=1e-12)
+    assert not correct(old, c.reading).out_of_range.any()
+    assert not correct(new, c.reading).out_of_range.any()
+    full = fit_model([dev], prefix=testbed, **kw)  # the whole turn: the other's arc alone
+    arc = np.array(workflow.measured_arc(old))  # from the first turn on
+    arc -= 360.0 * np.floor(arc[0] / 360.0)
+    np.testing.assert_allclose(compare_models(full, old, n=11).reading, np.linspace(*arc, 11))
+    arcs = {id(old): (300.0, 460.0), id(new): (50.0, 330.0)}  # 300-330 and 410-460 (50-100)
+    monkeypatch.setattr(workflow, "measured_arc", lambda m: arcs[id(m)])
+    r = compare_models(old, new, n=80).reading
+    np.testing.assert_allclose(r, np.r_[np.linspace(300, 330, 30), np.linspace(410, 460, 50)])
+    arcs[id(new)] = (120.0, 250.0)
+    with pytest.raises(InputError, match=r"cover \(300 to 460 and 120 to 250 deg\) do not overlap"):
+        compare_models(old, new)
+
+
 def test_a_drifted_device_leaves_the_band_and_an_unchanged_one_does_not():
     from cascal.demo import linear_recalibration
     from cascal.io.data import StageData

@@ -39,6 +39,24 @@ def test_change_names_its_quantity_and_the_files_in_the_title():
     assert ax.get_title().startswith("new.json - old.json\n")
 
 
+def test_change_draws_the_max_change_and_breaks_between_two_stretches():
+    """A review: the figure of ``compare --max-change`` did not draw the limit it judged
+    against (verify draws its MPE). Two stretches of a turn (arcs that overlap at both
+    ends) are drawn apart, with no line across the part left out."""
+    r = np.r_[np.linspace(300.0, 330.0, 30), np.linspace(410.0, 460.0, 50)]
+    u = np.full(r.size, 1e-4)
+    c = compare(r, r, u, r + 2e-4, u, period=360.0)
+    ax = plot_change(c, scale=3600.0, unit="arcsec", limit=1e-4).axes[0]
+    (line,) = _lines(ax, "±max change 0.36 arcsec")
+    assert line.get_ydata()[0] == pytest.approx(0.36)
+    assert ax.get_title().endswith("beyond the max change; beyond the band over 0.0 % of the range")
+    (change,) = _lines(ax, "change of the correction")
+    x = np.asarray(change.get_xdata())
+    assert np.isnan(x[30]) and x.size == 81 and np.all(np.isfinite(np.delete(x, 30)))
+    ok = plot_change(c, scale=3600.0, unit="arcsec", limit=1e-3).axes[0].get_title()
+    assert "within the max change" in ok
+
+
 def test_cost_medians_are_written_without_exponents():
     costs = {"bayes": np.full(5, 80e-6), "lut": np.full(5, 1.53e-3)}
     ax = plot_cost_distribution(costs).axes[0]

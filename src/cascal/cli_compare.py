@@ -14,9 +14,9 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from .cli import EXIT_NOT_CONFORMING, check_outputs, load_checked, warn, write_outputs
     from .io.atomic import save_figure
     from .io.csvout import auto_decimals, write_columns
-    from .text import range_text, reading_in_range
+    from .text import range_ends, range_text, reading_in_range
     from .verification import BAND_LEVEL
-    from .workflow import compare_models
+    from .workflow import compare_models, measured_arc
 
     check_outputs(args.output, args.plot, inputs=(args.old, args.new))
     old = load_checked(args.old, o=args.output, plot=args.plot)
@@ -33,14 +33,17 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             "independent calibrations of an unchanged device would differ by, not a "
             "recalibration",
         )
-    span = (
-        f"one turn (period {old.period:g})"
-        if old.periodic
-        else f"their common range {range_text(c.reading[0], c.reading[-1])}"
-    )
+    span = f"their common range {range_text(c.reading[0], c.reading[-1])} {unit}"
+    if old.periodic:
+        span = f"one turn (period {old.period:g} {unit})"
+        if measured_arc(old) or measured_arc(new):
+            a, b = range_ends(c.reading[0], c.reading[-1])
+            span = (
+                f"the part of the turn both models' device readings cover, {a} to {b} {unit} "
+                f"(period {old.period:g})"
+            )
     print(
-        f"Compared {args.new} (new) with {args.old} (old) over {span} {unit}, "
-        f"{c.reading.size} readings."
+        f"Compared {args.new} (new) with {args.old} (old) over {span}, {c.reading.size} readings."
     )
     print(
         f"  old: fitted {old.created}, method {old.method}; new: fitted {new.created}, "
@@ -56,7 +59,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     if args.plot is not None:  # drawn before anything is written
         from .report import comparison_figure
 
-        fig = comparison_figure(old, c, (Path(args.old).name, Path(args.new).name))
+        names = (Path(args.old).name, Path(args.new).name)
+        fig = comparison_figure(old, c, names, limit=args.max_change)
     if c.has_u:
         how = (
             "the test bed's calibration both share counted once"

@@ -376,6 +376,7 @@ def plot_change(
     unit: str = "m",
     xunit: str = "m",
     names: tuple[str, str] = ("old", "new"),
+    limit: float | None = None,
 ) -> Figure:
     """A recalibration's change of the correction against the reading, with the
     simultaneous band ``±k_band u`` an unchanged device stays within over the whole range
@@ -385,26 +386,40 @@ def plot_change(
         c: The comparison of :func:`cascal.verification.compare`.
         scale, unit: Display scale of the change; ``xunit`` of readings.
         names: What to call the two calibrations.
+        limit: The largest change allowed (``compare --max-change``), in the readings' unit:
+            drawn as ``±limit``.
     """
     if fig is None:
         fig = Figure(figsize=(7.5, 3.6), layout="constrained")
     ax = fig.subplots()
     r, d = c.reading, c.change * scale
+    band = c.k_band * c.u * scale if c.has_u else None
+    beyond = np.where(c.z > c.k_band, d, np.nan) if c.has_u else None
+    step = np.diff(r)
+    if step.size > 1 and np.max(step) > 3.0 * np.median(step):  # two stretches of a turn:
+        cut = np.flatnonzero(step > 3.0 * np.median(step)) + 1  # no line between them
+        r, d = np.insert(r, cut, np.nan), np.insert(d, cut, np.nan)
+        if band is not None and beyond is not None:
+            band, beyond = np.insert(band, cut, np.nan), np.insert(beyond, cut, np.nan)
     s = c.summary()
     title = (
         f"RMS change {s['rms_change'] * scale:.3g} {unit}, "
         f"largest {s['max_change'] * scale:.3g} {unit}"
     )
-    if c.has_u:
-        band = c.k_band * c.u * scale
+    if band is not None and beyond is not None:
         label = f"95 % simultaneous band (±{c.k_band:.2f} u)"
         ax.fill_between(r, -band, band, color="C0", alpha=0.2, lw=0, label=label)
     ax.axhline(0.0, color="k", lw=0.6)
     ax.plot(r, d, "-", color="C0", lw=1.2, label="change of the correction")
-    if c.has_u:
-        beyond = c.z > c.k_band
-        if np.any(beyond):
-            ax.plot(r, np.where(beyond, d, np.nan), "-", color="C3", lw=2, label="beyond it")
+    if limit is not None:
+        shown = f"±max change {limit * scale:.3g} {unit}"
+        for sign, label in ((1.0, shown), (-1.0, None)):
+            ax.axhline(sign * limit * scale, color="C1", ls="--", lw=1.0, label=label)
+        verdict = "beyond" if s["max_change"] > limit else "within"
+        title += f"; {verdict} the max change"
+    if band is not None and beyond is not None:
+        if np.any(np.isfinite(beyond)):
+            ax.plot(r, beyond, "-", color="C3", lw=2, label="beyond it")
         title += f"; beyond the band over {100 * s['share_beyond_band']:.1f} % of the range"
     ax.set_xlabel(f"device reading [{xunit}]")
     ax.set_ylabel(f"change of correction [{unit}]")

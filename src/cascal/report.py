@@ -407,11 +407,17 @@ def verification_figure(model: CalibrationModel, v: Verification) -> Figure:
     return plot_verification(v, scale=scale, unit=shown, xunit=model.unit)
 
 
-def comparison_figure(model: CalibrationModel, c: Comparison, names: tuple[str, str]) -> Figure:
+def comparison_figure(
+    model: CalibrationModel,
+    c: Comparison,
+    names: tuple[str, str],
+    limit: float | None = None,
+) -> Figure:
     """The figure of a recalibration's change (``model``: either of the two), in readable
-    units."""
-    scale, shown = display_scale(model.unit, float(np.max(np.abs(c.change))))
-    return plot_change(c, scale=scale, unit=shown, xunit=model.unit, names=names)
+    units, with the largest change allowed (``limit``, the model's unit) where given."""
+    top = max(float(np.max(np.abs(c.change))), limit or 0.0)
+    scale, shown = display_scale(model.unit, top)
+    return plot_change(c, scale=scale, unit=shown, xunit=model.unit, names=names, limit=limit)
 
 
 _CSS = (
