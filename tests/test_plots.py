@@ -27,7 +27,24 @@ def test_verification_draws_the_acceptance_limits_inside_the_mpe():
     bad = verify(r, r, r + 10 * err, np.full(80, 1e-6), u_reference=1e-6, mpe=5e-6)
     title = plot_verification(bad, scale=1e6, unit="µm").axes[0].get_title()
     n = int(np.count_nonzero(~bad.conforms[bad.inside]))
-    assert n > 0 and f"; {n} not shown to conform to the MPE" in title
+    assert n > 0 and title.endswith(f"\n{n} not shown to conform to the MPE")
+
+
+def test_verification_counts_the_points_it_leaves_out_in_its_verdict():
+    """A review: with one check point outside the calibrated range, ``verify --mpe`` failed
+    (exit 3) while its figure said "all conform to the MPE", and never named its files."""
+    r = np.linspace(0.0, 1.0, 80)
+    err = 1e-6 * np.sin(6 * r)
+    v = verify(r, r, r + err, np.full(80, 1e-6), inside=r < 0.99, u_reference=1e-6, mpe=5e-6)
+    ax = plot_verification(v, scale=1e6, unit="µm", names=("m.json", "check.csv")).axes[0]
+    rms = float(np.sqrt(np.mean(err[r < 0.99] ** 2))) * 1e6
+    assert ax.get_title() == (
+        f"check.csv against m.json\n79 check points: RMS error {rms:.3g} µm, 100.0 % within ±U\n"
+        "1 outside the calibrated range left out, not judged: not all shown to conform to the MPE"
+    )
+    plain = verify(r, r, r + err, np.full(80, 1e-6), inside=r < 0.99)
+    title = plot_verification(plain, scale=1e6, unit="µm").axes[0].get_title()
+    assert title.endswith("within ±U\n1 outside the calibrated range left out")
 
 
 def test_change_names_its_quantity_and_the_files_in_the_title():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 __all__ = ["add_verify_parser"]
 
@@ -73,7 +74,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     if args.plot is not None:  # drawn before anything is written
         from .report import verification_figure
 
-        fig = verification_figure(model, v)
+        fig = verification_figure(model, v, (Path(args.model).name, Path(args.check).name))
     m = v.inside
     outside = ""
     first_out = int(table.rows[np.argmax(~m)])  # (the first row when none is outside)

@@ -307,16 +307,19 @@ def plot_verification(
     scale: float = 1.0,
     unit: str = "m",
     xunit: str = "m",
+    names: tuple[str, str] | None = None,
 ) -> Figure:
     """Check points' errors after correction against the reading, with the expanded
     uncertainty ``k u`` of each (a band, or error bars for fewer than 50 points), points
     outside it and points not shown to conform to the MPE marked, and the MPE if given.
-    Points outside the calibrated range are left out; a rotary model's readings are drawn
-    on one turn.
+    Points outside the calibrated range are left out, and counted in the title (with an
+    MPE, they fail the verification as ``cascal verify`` does); a rotary model's readings
+    are drawn on one turn.
 
     Args:
         v: The verification of :func:`cascal.verification.verify`.
         scale, unit: Display scale of errors; ``xunit`` of readings.
+        names: The model's and the check points' file names, for the title.
     """
     if fig is None:
         fig = Figure(figsize=(7.5, 3.6), layout="constrained")
@@ -344,6 +347,8 @@ def plot_verification(
     title = f"{points}: RMS error {s['rms_after'] * scale:.3g} {unit}"
     if s["within_U"] is not None:
         title += f", {100 * s['within_U'] / s['points']:.1f} % within ±U"
+    left = s["outside_range"]
+    verdict = [f"{left} outside the calibrated range left out"] if left else []
     if v.mpe is not None:
         for sign in (-1.0, 1.0):
             ax.axhline(sign * v.mpe * scale, color="C1", ls="--", lw=1,
@@ -357,12 +362,16 @@ def plot_verification(
         if np.any(failing):
             ax.plot(r[failing], e[failing], "o", mfc="none", mec="C1", ms=7,
                     label="not shown to conform")  # fmt: skip
-            title += f"; {np.count_nonzero(failing)} not shown to conform to the MPE"
+            verdict.append(f"{np.count_nonzero(failing)} not shown to conform to the MPE")
+        elif left:
+            verdict[0] += ", not judged: not all shown to conform to the MPE"
         else:
-            title += "; all conform to the MPE"
+            verdict.append("all conform to the MPE")
     ax.set_xlabel(f"device reading [{xunit}]")
     ax.set_ylabel(f"corrected - reference [{unit}]")
-    ax.set_title(title, fontsize=9)
+    lines = [] if names is None else [f"{names[1]} against {names[0]}"]
+    lines += [title, "; ".join(verdict)] if verdict else [title]
+    ax.set_title("\n".join(lines), fontsize=9)
     fig.legend(fontsize=7, loc="outside lower center", ncol=5, frameon=False)
     return fig
 

@@ -400,11 +400,14 @@ def plan_figure(model: CalibrationModel, mp: MeasurementPlan) -> Figure:
     )
 
 
-def verification_figure(model: CalibrationModel, v: Verification) -> Figure:
-    """The figure of a verification of ``model`` at check points, in readable units."""
+def verification_figure(
+    model: CalibrationModel, v: Verification, names: tuple[str, str] | None = None
+) -> Figure:
+    """The figure of a verification of ``model`` at check points, in readable units;
+    ``names``: the model's and the check points' file names."""
     e = v.error[v.inside]
     scale, shown = display_scale(model.unit, float(np.max(np.abs(e))) if e.size else 0.0)
-    return plot_verification(v, scale=scale, unit=shown, xunit=model.unit)
+    return plot_verification(v, scale=scale, unit=shown, xunit=model.unit, names=names)
 
 
 def comparison_figure(
