@@ -165,3 +165,25 @@ def test_plan_order_labels_do_not_run_into_each_other():
     assert set(labels) == {"1, 2, 3", "4", "5"}
     assert labels["5"][1] > labels["1, 2, 3"][1]  # a line higher
     assert labels["4"][1] == labels["1, 2, 3"][1]  # far apart: the same line
+
+
+def test_plan_labels_group_only_close_proposals_and_wrap_reference_points():
+    """A review's cases: seven proposals from 4.4 to 21.9 deg, each within 1.5 % of the
+    turn of the next, were chained into one label "1, 2, 3, 4, 5, 6, 8" over 18 degrees;
+    a group now spans at most that 1.5 %, its orders left to right. And a rotary test
+    bed read from -180 to 180 drew its reference points below 0 off the turn drawn."""
+    from cascal import fit_gp
+    from cascal.planning import Plan
+    from cascal.plots import plot_plan
+
+    x = np.linspace(-175.0, 175.0, 36)
+    gp = fit_gp(x, x + 1e-3 * np.sin(np.deg2rad(x)), kernel="periodic", period=360.0)
+    pos = np.array([6.3, 9.3, 11.8, 4.4, 14.7, 16.8, 30.0, 21.9])
+    where = np.linspace(0.0, 350.0, 5)
+    plan = Plan(pos, np.ones(9), np.ones(9), 1e-8, where, np.ones(5), np.ones(5))
+    ax = plot_plan(plan, gp, [(-180.0, 180.0)], unit="deg", xunit="deg", period=360.0).axes[0]
+    labels = sorted(t.get_text() for t in ax.texts)
+    assert labels == ["3, 5, 6", "4, 1, 2", "7", "8"]  # groups of 5.4 deg at most
+    (ticks,) = [ln for ln in ax.get_lines() if ln.get_label() == "reference points"]
+    drawn = np.sort(ticks.get_xdata())
+    np.testing.assert_allclose(drawn, np.sort(np.mod(x, 360.0)))

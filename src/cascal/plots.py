@@ -258,7 +258,8 @@ def plot_plan(
         ax.axvspan(a, b, color="C2", alpha=0.12, lw=0, label="reachable" if k == 0 else None)
     ax.plot(grid, now * scale, color="C0", lw=1.5, label="stage 0 u now")
     ax.plot(grid, after * scale, color="C1", lw=1.5, ls="--", label="after the plan")
-    ax.plot(testbed.x, np.zeros_like(testbed.x), "k|", ms=8, label="reference points")
+    points = testbed.x if period is None else np.mod(testbed.x, period)  # on the turn drawn
+    ax.plot(points, np.zeros_like(points), "k|", ms=8, label="reference points")
     for k, p in enumerate(plan.positions, 1):
         ax.axvline(p, color="C3", lw=0.8, alpha=0.7, label="proposed" if k == 1 else None)
     top = float(np.max(now)) * scale
@@ -438,16 +439,17 @@ def plot_change(
 
 
 def _labels(positions: np.ndarray, near: float) -> list[tuple[float, str]]:
-    """One label per group of proposals closer than ``near``: its mean position and the
-    orders (1-based) of its proposals."""
+    """One label per group of proposals within ``near`` of the group's first: its mean
+    position and the orders (1-based) of its proposals, left to right. (Groups chained
+    from neighbour to neighbour had put one label over seven proposals 18 degrees apart.)"""
     order = np.argsort(positions, kind="stable")
     groups: list[list[int]] = []
     for i in order.tolist():
-        if groups and positions[i] - positions[groups[-1][-1]] < near:
+        if groups and positions[i] - positions[groups[-1][0]] < near:
             groups[-1].append(i)
         else:
             groups.append([i])
-    return [(float(np.mean(positions[g])), ",".join(str(i + 1) for i in sorted(g))) for g in groups]
+    return [(float(np.mean(positions[g])), ",".join(str(i + 1) for i in g)) for g in groups]
 
 
 def _wrapped(reach: list[tuple[float, float]], period: float) -> list[tuple[float, float]]:
