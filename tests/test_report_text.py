@@ -5,6 +5,7 @@ from __future__ import annotations
 import html
 
 import numpy as np
+import pytest
 
 from cascal.demo import rotary_demo
 from cascal.report import build_report
@@ -87,6 +88,35 @@ def test_the_correction_figure_marks_the_arc_a_rotary_device_left_out():
     assert any(abs(x - start) < 1e-9 for x in spans)
     full = fit_model(demo_stages(rotary_demo(0)), kernel="periodic", period=360.0, n_restarts=1)
     assert correction_curve(full).arc is None
+
+
+def test_figures_of_a_partly_measured_turn_are_scaled_over_what_was_measured():
+    """A review's case: U across the arc the device readings leave out (some 250 arcsec)
+    set the scale of the report's U panel and of the device stage's residual panel, where
+    U over the measured arc (about 1 arcsec), the residuals and the target noise's band
+    were then hairlines on zero. Both are scaled over the measured arc now, the band
+    beyond it running off the axis, and the stage figure shades the arc too."""
+    from cascal.compensation import in_arc
+    from cascal.report import correction_curve, correction_figure, stage_figure
+    from cascal.reportdata import stage_views
+    from cascal.workflow import arc_width
+
+    model = _partial_turn_model()
+    curve = correction_curve(model)
+    outside = ~in_arc(curve.grid, arc_width(curve.arc, 360.0), 360.0)
+    U = 2.0 * curve.u * 3600.0  # arcsec
+    assert U.max() > 10.0 * U[outside].max()  # (24.5 against 1.36 arcsec)
+    ux = correction_figure(curve, unit="deg", period=360.0).axes[1]
+    assert ux.get_ylim() == pytest.approx((-1.15 * U[outside].max(), 1.15 * U[outside].max()))
+    view = stage_views(model)[-1]
+    assert view.arc == curve.arc and stage_views(model)[0].arc is None
+    ax, rx = stage_figure(view, unit="deg", period=360.0).axes
+    seen = ~in_arc(view.grid, arc_width(view.arc, 360.0), 360.0)
+    top = 3600.0 * max(np.abs(view.residuals).max(), view.band[seen].max())
+    assert rx.get_ylim() == pytest.approx((-1.15 * top, 1.15 * top))
+    assert "device readings leave out (flagged)" in [
+        t.get_text() for t in ax.get_legend().get_texts()
+    ]
 
 
 def test_exclude_spec_writes_runs_of_rows_as_ranges():

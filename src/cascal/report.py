@@ -16,6 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ._version import __version__
+from .compensation import in_arc
 from .errors import CascalError
 from .gp import Z95
 from .io.modelfile import CalibrationModel
@@ -82,9 +83,10 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
         ax.set_xlabel(f"reading [{unit}]")
         _seams(ax, period=period, grid=view.grid)
         return fig
+    seen = _measured(view.grid, view.arc, period)  # (the arc left out: the band clipped)
     scale = max(
         np.max(np.abs(view.residuals), initial=0.0),
-        np.max(view.band, initial=0.0) if view.band is not None else 0.0,
+        np.max(view.band[seen], initial=0.0) if view.band is not None else 0.0,
     )
     fr, sr = display_scale(unit, float(scale) or 1.0)
     if view.band is not None:
@@ -106,6 +108,10 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
             label="suspect (outlier screening)",
         )  # fmt: skip
     _shade(rx, view.gaps, period, None)
+    if view.arc is not None and not seen.all():
+        rx.set_ylim(-1.15 * scale * fr, 1.15 * scale * fr)
+        _shade_arc(ax, rx, arc=view.arc, period=period)
+        ax.legend(fontsize=7, loc="best")  # again, with the arc
     rx.set_ylabel(f"residual, target - fit [{sr}]")
     rx.set_xlabel(f"reading [{unit}]")
     rx.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
@@ -126,18 +132,19 @@ def correction_figure(curve: CurveView, *, unit: str, period: float | None = Non
     ax.set_ylabel(f"corrected - reading [{su}]")
     if has_u:
         U = 2.0 * curve.u  # type: ignore[operator]
-        fu, uu = display_scale(unit, float(np.max(U)))
-        axes[1].fill_between(
-            curve.grid, -U * fu, U * fu, color="C0", alpha=0.3, lw=0, label="± U (k = 2)"
-        )
+        seen = _measured(curve.grid, curve.arc, period)  # the arc left out: U there clipped
+        top = float(np.max(U[seen], initial=0.0)) or float(np.max(U))
+        fu, uu = display_scale(unit, top)
+        label = "± U (k = 2)" if seen.all() else "± U (k = 2), off the axis in the arc left out"
+        axes[1].fill_between(curve.grid, -U * fu, U * fu, color="C0", alpha=0.3, lw=0, label=label)
         axes[1].axhline(0.0, color="0.3", lw=0.8)
         axes[1].set_ylabel(f"expanded uncertainty [{uu}]")
+        if not seen.all():
+            axes[1].set_ylim(-1.15 * top * fu, 1.15 * top * fu)
     for a in axes:
         _shade(a, curve.gaps, period, "reference could not measure" if a is ax else None)
         if curve.arc is not None and period is not None:  # (a review: drawn unmarked)
-            start, width = arc_width(curve.arc, period)
-            label = "device readings leave out (flagged)" if a is ax else None
-            _shade(a, [(start, start + width)], period, label, _ARC_STYLE)
+            _shade_arc(a, arc=curve.arc, period=period, label=a is ax)
         if period is None:
             for edge in curve.calibrated_range:
                 a.axvline(edge, color="0.4", ls=":", lw=1)
@@ -145,6 +152,27 @@ def correction_figure(curve: CurveView, *, unit: str, period: float | None = Non
     _seams(*axes, period=period, grid=curve.grid)
     axes[-1].set_xlabel(f"device reading [{unit}]")
     return fig
+
+
+def _measured(grid: np.ndarray, arc: tuple[float, float] | None, period: float | None):
+    """True (g,) where ``grid`` lies outside a periodic model's arc its device readings
+    leave out (everywhere without one): the figures' axes are scaled there, so that the
+    extrapolation across that arc (U of 250 arcsec beside 1 arcsec measured: a review)
+    does not flatten what was calibrated."""
+    if arc is None or period is None:
+        return np.ones(grid.shape, bool)
+    return ~in_arc(grid, arc_width(arc, period), period)
+
+
+def _shade_arc(*axes, arc: tuple[float, float], period: float | None, label: bool = True) -> None:
+    """Shade a periodic model's arc its device readings leave out on ``axes`` (the first
+    labelled, where ``label``)."""
+    if period is None:
+        return
+    start, width = arc_width(arc, period)
+    for k, a in enumerate(axes):
+        name = "device readings leave out (flagged)" if label and k == 0 else None
+        _shade(a, [(start, start + width)], period, name, _ARC_STYLE)
 
 
 def _shade(ax, gaps, period, label, style=None) -> None:

@@ -56,6 +56,8 @@ class StageView:
         log_marginal_likelihood: Of the fitted GP, or None.
         screening: Outlier screening of the GP's points (:func:`cascal.screening.screen`),
             or None (lut).
+        arc: For the device stage of a periodic model, the part of the turn its readings
+            leave out (:func:`~cascal.workflow.unmeasured_arc`), or None.
     """
 
     name: str
@@ -73,6 +75,7 @@ class StageView:
     gaps: list[tuple[float, float]]
     log_marginal_likelihood: float | None
     screening: Screening | None = None
+    arc: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -176,6 +179,7 @@ def stage_views(model: CalibrationModel) -> list[StageView]:
                 counts=model.counts[k],
                 grid=grid,
                 gaps=gaps,
+                arc=unmeasured_arc(model) if k == len(model.data) - 1 else None,
                 **extra,  # type: ignore[arg-type]
             )
         )
