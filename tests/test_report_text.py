@@ -202,3 +202,20 @@ def test_a_reading_named_in_a_range_is_printed_within_it():
     assert reading_in_range(hi, lo, hi) == "0.940129142"
     assert reading_in_range(lo, lo, hi) == "0.0980742049"
     assert reading_in_range(0.5, lo, hi) == "0.5"
+
+
+def test_millimetres_and_radians_are_shown_with_a_smaller_prefix():
+    """A review: only metres and degrees were rescaled, so a U of 6e-6 rad was drawn as
+    ticks of 6 beside a detached "1e-6" (read as 6 rad), and a mm axis as 0.0001 mm or
+    "3.43e-05 mm". Millimetres and radians now step down as metres do."""
+    from cascal.report import display_scale
+
+    assert display_scale("m", 3.43e-8) == (1e9, "nm")
+    assert display_scale("mm", 3.43e-5) == (1e6, "nm")
+    assert display_scale("mm", 2e-3) == (1e3, "µm")
+    assert display_scale("mm", 0.5) == (1e3, "µm")
+    assert display_scale("mm", 2.0) == (1.0, "mm")
+    assert display_scale("rad", 6e-6) == (1e6, "µrad")
+    assert display_scale("rad", 0.02) == (1e3, "mrad")
+    assert display_scale("deg", 0.001) == (3600.0, "arcsec")
+    assert display_scale("inch", 1e-4) == (1.0, "inch")  # no ladder: as it is

@@ -37,7 +37,15 @@ __all__ = [
     "verification_figure",
 ]
 
-_SI = (("m", 1.0), ("mm", 1e3), ("µm", 1e6), ("nm", 1e9))
+#: Units shown with a smaller SI prefix where values are small: each one's ladder.
+_LADDERS = {
+    "m": (("m", 1.0), ("mm", 1e3), ("µm", 1e6), ("nm", 1e9)),
+    "mm": (("mm", 1.0), ("µm", 1e3), ("nm", 1e6)),
+    "µm": (("µm", 1.0), ("nm", 1e3)),
+    "um": (("um", 1.0), ("nm", 1e3)),
+    "rad": (("rad", 1.0), ("mrad", 1e3), ("µrad", 1e6), ("nrad", 1e9)),
+    "mrad": (("mrad", 1.0), ("µrad", 1e3), ("nrad", 1e6)),
+}
 _GAP_STYLE = dict(color="0.55", alpha=0.25, lw=0, hatch="//")
 #: The part of the turn a rotary device's readings leave out (flagged by correct).
 _ARC_STYLE = dict(color="C3", alpha=0.15, lw=0, hatch="\\\\")
@@ -45,13 +53,16 @@ _ARC_STYLE = dict(color="C3", alpha=0.15, lw=0, hatch="\\\\")
 
 def display_scale(unit: str, magnitude: float) -> tuple[float, str]:
     """Factor and unit to show corrections of about ``magnitude`` (in ``unit``) readably:
-    metres get an SI prefix, small angles in degrees become arcseconds."""
+    metres, millimetres and radians get a smaller SI prefix (values of 1 or more shown,
+    no detached multiplier beside the axis: a review read +-6e-6 rad as +-6 rad), small
+    angles in degrees become arcseconds."""
     magnitude = abs(float(magnitude))
-    if unit == "m" and magnitude > 0:
-        for name, f in _SI:
+    ladder = _LADDERS.get(unit)
+    if ladder is not None and magnitude > 0:
+        for name, f in ladder:
             if magnitude * f >= 1.0:
                 return f, name
-        return _SI[-1][1], _SI[-1][0]
+        return ladder[-1][1], ladder[-1][0]
     if unit in ("deg", "°") and 0 < magnitude < 0.1:
         return 3600.0, "arcsec"
     return 1.0, unit
@@ -358,7 +369,8 @@ def _screening_html(s: Screening, unit: str, repeats: bool) -> str:
         (_num(q.reading), _num(q.target), _num(q.predicted), _num(q.std), f"{q.z:+.1f}")
         for q in s.suspects
     ]
-    head = [f"reading [{unit}]", f"target [{unit}]", "predicted by the others", f"u [{unit}]", "z"]
+    head = [f"{h} [{unit}]" for h in ("reading", "target", "predicted by the others", "u")]
+    head.append("z")
     k = len(s.suspects)
     cap = " More points disagree than the screening takes out: the model is in doubt."
     noise = (
