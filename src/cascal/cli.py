@@ -485,8 +485,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             n_rows = len(r.screening.rows) if r.screening else 0
             suspect = f", {n_rows} suspect row{'s' * (n_rows > 1)}" if n_rows else ""
             print(
-                f"  {where} {r.device}: rms correction {r.rms_correction:.4g}, "
-                f"largest u {r.max_u:.4g}{suspect}",
+                f"  {where} {r.device}: rms correction {r.rms_correction:.4g} {tb.unit}, "
+                f"largest u {r.max_u:.4g} {tb.unit}{suspect}",
                 flush=True,
             )
             if r.arc is not None:  # (a review: a partly measured rotary device, in silence)

@@ -48,10 +48,12 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         f"each measurement's standard deviation {np.sqrt(plan.noise_variance):.3g} {unit}."
     )
     print(f"Lowered: {mp.target} ({plan.where.size} points).")
-    print(f"{'order':>5}  {'test-bed reading':>18}  {'RMS u after':>12}  {'largest u after':>15}")
-    print(f"{'now':>5}  {'':>18}  {plan.u_rms[0]:12.4g}  {plan.u_max[0]:15.4g}")
+    head = [f"test-bed reading [{unit}]", f"RMS u after [{unit}]", f"largest u after [{unit}]"]
+    w = [max(len(h), 12) for h in head]
+    print(f"{'order':>5}  {head[0]:>{w[0]}}  {head[1]:>{w[1]}}  {head[2]:>{w[2]}}")
+    print(f"{'now':>5}  {'':>{w[0]}}  {plan.u_rms[0]:{w[1]}.4g}  {plan.u_max[0]:{w[2]}.4g}")
     for k, p in enumerate(plan.positions, 1):
-        print(f"{k:5d}  {p:18.9g}  {plan.u_rms[k]:12.4g}  {plan.u_max[k]:15.4g}")
+        print(f"{k:5d}  {p:{w[0]}.9g}  {plan.u_rms[k]:{w[1]}.4g}  {plan.u_max[k]:{w[2]}.4g}")
     if args.noise_std is not None and plan.noise_variance > args.noise_std**2:
         warn(
             "plan",

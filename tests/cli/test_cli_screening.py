@@ -92,7 +92,7 @@ def test_fleet_summary_lists_suspect_rows(spoiled, linear_files):
     res = run_cascal("fit-devices", bad_ref, "--devices", folder, "-o", tmp / "fleet")
     assert res.returncode == 0, res.stderr
     assert re.search(r"\] b: rms correction .*, 1 suspect row\n", res.stdout)
-    assert re.search(r"\] a: rms correction [^,]*, largest u [0-9.e+-]+\n", res.stdout)
+    assert re.search(r"\] a: rms correction [^,]* m, largest u [0-9.e+-]+ m\n", res.stdout)
     assert f"fit-devices: warning: {bad_ref} row 41:" in res.stderr
     assert f"fit-devices: warning: {folder / 'b.csv'} row 101:" in res.stderr
     assert "Outlier screening of the test bed (1 % " in res.stdout
