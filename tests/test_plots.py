@@ -187,3 +187,28 @@ def test_plan_labels_group_only_close_proposals_and_wrap_reference_points():
     (ticks,) = [ln for ln in ax.get_lines() if ln.get_label() == "reference points"]
     drawn = np.sort(ticks.get_xdata())
     np.testing.assert_allclose(drawn, np.sort(np.mod(x, 360.0)))
+
+
+def test_the_cascade_figure_draws_stage_0_wherever_stage_1_reads_it():
+    """A review: stage 0 was drawn over its own readings only, so the ends the reference
+    could not reach, where stage 1's targets come from its extrapolation (their error bars
+    widest), were off the figure. It spans stage 1's test-bed readings now, with the
+    stretches the reference could not measure hatched."""
+    from cascal import Cascade
+    from cascal.plots import plot_cascade
+    from cascal.simulation import simulate_trial
+
+    trial = simulate_trial(np.random.default_rng(0))
+    fitted = Cascade([trial.d2, trial.d1], "bayes", n_restarts=1).fit()
+    ax0, ax1 = plot_cascade(fitted, upper=[trial.d1[1]]).axes
+    (mean,) = _lines(ax0, "stage 0: mean")
+    x = np.asarray(mean.get_xdata())
+    testbed = np.r_[trial.d2[0], trial.d1[1]]
+    assert x.min() == testbed.min() and x.max() == testbed.max()
+    assert testbed.min() < trial.d2[0].min() and testbed.max() > trial.d2[0].max()
+    hatched = [p for p in ax0.patches if p.get_hatch() == "//"]
+    assert len(hatched) == 3  # below, across the centre, above
+    (mean1,) = _lines(ax1, "stage 1: mean")
+    assert np.min(mean1.get_xdata()) == trial.d1[0].min()
+    (own,) = _lines(plot_cascade(fitted).axes[0], "stage 0: mean")  # without: its readings
+    assert np.min(own.get_xdata()) == trial.d2[0].min()

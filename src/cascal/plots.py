@@ -8,7 +8,7 @@ calibration map that is not the identity.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TypeVar
 
 import numpy as np
@@ -17,7 +17,7 @@ from matplotlib.figure import Figure
 
 from .cascade import FittedCascade
 from .gp import Z95, FittedGP
-from .planning import Plan, variance_after
+from .planning import Plan, find_gaps, variance_after
 from .verification import Comparison, Verification
 
 __all__ = [
@@ -136,6 +136,7 @@ def plot_cascade(
     fig: Figure | None = None,
     scale: float = 1e6,
     unit: str = "µm",
+    upper: Sequence[np.ndarray] = (),
 ) -> Figure:
     """One panel per GP stage, like the paper's Fig. 4: stage fits with their 95 % bands.
 
@@ -145,6 +146,9 @@ def plot_cascade(
             given, each panel shows deviations from the true map, so the bands are visible.
         fig: Figure to draw into (a new one if None).
         scale, unit: Display scale for corrections (default micrometres).
+        upper: Per stage after the first, its upper sensor's readings (the stage above is
+            evaluated there for its targets), shape (n_k,): the stage above is drawn over
+            them too, where it extrapolates. Stage 0 gets its gaps and ends hatched.
     """
     models = [m for m in fitted.models if isinstance(m, FittedGP)]
     if not models:
@@ -157,9 +161,14 @@ def plot_cascade(
         if k > 0 and gp.noise is not None:
             bars = Z95 * np.sqrt(np.clip(gp.noise.diagonal(gp.x.size), 0.0, None))
         truth = truths[k] if truths is not None else None
+        # drawn over the readings the next stage asks of it too, where it extrapolates
+        # (a review: the ends the reference could not reach were off the example's figure)
+        used = gp.x if k >= len(upper) else np.r_[gp.x, np.asarray(upper[k], float)]
+        grid = np.linspace(float(used.min()), float(used.max()), 400)
         plot_stage(
             gp,
             ax=ax,
+            grid=grid,
             truth=truth,
             errorbars=bars,
             scale=scale,
@@ -168,6 +177,13 @@ def plot_cascade(
             color=f"C{k}",
             relative_to=truth,
         )
+        if k == 0:  # where the reference could not measure: its gaps and beyond its ends
+            lo, hi = float(gp.x.min()), float(gp.x.max())
+            spans = [(grid[0], lo), *find_gaps(gp.x), (hi, grid[-1])]
+            for j, (a, b) in enumerate((a, b) for a, b in spans if b > a):
+                label = "reference could not measure" if j == 0 else None
+                ax.axvspan(a, b, color="0.55", alpha=0.2, lw=0, hatch="//", label=label)
+            ax.legend(fontsize=7, loc="best")
         ax.set_title(f"stage {k} ({fitted.stages[k].name}), method {fitted.method}", fontsize=9)
     return fig
 
