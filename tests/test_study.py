@@ -603,3 +603,88 @@ def test_sigterm_while_the_outputs_are_written_lets_them_finish(tmp_path, monkey
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
     assert len((tmp_path / "trials.csv").read_text().splitlines()) == 3
     assert (tmp_path / "cost_distribution.svg").exists()
+
+
+def test_a_damaged_record_is_refused_before_pending_trials_run(tmp_path, monkeypatch):
+    """A review's case: a damaged record of a trial other than the first was found only
+    after the pending trials had been computed and stored (hours, on an extension), and
+    the message then said to abandon the folder. Every stored record is read first now."""
+    from cascal import study
+
+    run_study(tmp_path, trials=3, config=CONFIG, workers=1)
+    db = tmp_path / "study.sqlite"
+    _sqlite(db, "UPDATE trials SET fits='[1' WHERE idx=1", "DELETE FROM trials WHERE idx=2")
+    before = db.read_bytes()
+
+    def no_work(*args):
+        raise AssertionError("a trial ran")
+
+    monkeypatch.setattr(study, "run_chunk", no_work)
+    monkeypatch.setattr(study, "run_trial", no_work)
+    with pytest.raises(InputError, match=r"unreadable record of trial 1"):
+        run_study(tmp_path, trials=4, config=CONFIG, workers=1)
+    assert db.read_bytes() == before
+
+
+def test_a_study_database_that_is_no_regular_file_is_refused(tmp_path):
+    """A review's case: study.sqlite as a link to /dev/null, or a named pipe, was called a
+    disk I/O error (status 1); it is no study database (status 2)."""
+    (tmp_path / "a").mkdir()
+    os.mkfifo(tmp_path / "a" / "study.sqlite")
+    with pytest.raises(InputError, match=r"study.sqlite is not a regular file"):
+        run_study(tmp_path / "a", trials=2, config=CONFIG, workers=1)
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "study.sqlite").symlink_to(os.devnull)
+    with pytest.raises(InputError, match=r"study.sqlite is not a regular file"):
+        run_study(tmp_path / "b", trials=2, config=CONFIG, workers=1)
+
+
+def test_worker_counts_beyond_the_cap_and_a_missing_dask_are_input_errors(tmp_path, monkeypatch):
+    """A review's cases: --workers 3000000000 crashed inside multiprocessing with a
+    traceback after making the folder, and 100000 started a process per task; --scheduler
+    without Dask's distributed package installed ended in ModuleNotFoundError."""
+    from cascal.pool import MAX_WORKERS
+
+    with pytest.raises(InputError, match=f"at most {MAX_WORKERS} processes, got 3000000000"):
+        run_study(tmp_path / "w", trials=2, config=CONFIG, workers=3_000_000_000)
+    assert not (tmp_path / "w").exists()
+    res = subprocess.run(
+        [sys.executable, "-m", "cascal.cli", "study", "--trials", "2", "--workers", "100000",
+         "--out", str(tmp_path / "x")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert res.returncode == 2 and "--workers: expected at most 256 processes" in res.stderr
+    assert "Traceback" not in res.stderr and not (tmp_path / "x").exists()
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if not installed
+    with pytest.raises(InputError, match=r"needs Dask's distributed package.*cascal\[dask\]"):
+        run_study(tmp_path / "d", trials=2, config=CONFIG, scheduler="tcp://127.0.0.1:8786")
+    assert not (tmp_path / "d").exists()
+
+
+def test_dasks_client_log_is_silenced_after_dask_is_imported(monkeypatch):
+    """A review's case: a lost cluster printed Dask's ERROR line before the study's own
+    one line: the command had set that logger's level before importing Dask, whose import
+    set it again."""
+    import logging
+
+    distributed = pytest.importorskip("distributed")
+    from cascal import study
+
+    logging.getLogger("distributed.client").setLevel(logging.WARNING)  # as Dask's import
+    monkeypatch.setattr(study, "_handshake", lambda address, seconds: None)
+    monkeypatch.setattr(distributed, "Client", lambda address, timeout: "client")
+    assert study._connect("tcp://127.0.0.1:1") == "client"
+    assert logging.getLogger("distributed.client").level == logging.CRITICAL
+
+
+def test_progress_says_eta_unknown_before_a_trial_is_done():
+    """A review: with no trial done yet (a cluster without workers), the ETA read "nan s"."""
+    import io
+
+    from cascal.cli_study import Progress
+
+    stream = io.StringIO()
+    p = Progress(stream=stream, every_s=0.0)
+    p(0, 200)
+    p(0, 200)
+    assert stream.getvalue().strip().endswith("ETA unknown (none done yet)")

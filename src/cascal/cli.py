@@ -938,6 +938,16 @@ def positive_int(text: str) -> int:
     return _whole(text, 1, "at least 1")
 
 
+def worker_count(text: str) -> int:
+    """argparse type: local worker processes, 1 to :data:`cascal.pool.MAX_WORKERS`."""
+    from .pool import MAX_WORKERS
+
+    value = _whole(text, 1, "at least 1")
+    if value > MAX_WORKERS:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_WORKERS} processes, got {value}")
+    return value
+
+
 #: Most optimiser starts per stage on the command line: beyond, a fit's time grows with no
 #: optimum left to find (a table's local maxima cap the runs well below).
 MAX_RESTARTS = 100
@@ -1042,7 +1052,7 @@ def _parser() -> argparse.ArgumentParser:
         help="folder for testbed.json, devices/*.json and fleet_summary.csv",
     )
     fd.add_argument(
-        "--jobs", type=positive_int, default=None, help="worker processes (default: CPU count)"
+        "--jobs", type=worker_count, default=None, help="worker processes (default: CPU count)"
     )
     _fit_options(fd, fleet=True)
     fd.set_defaults(func=_cmd_fit_devices)

@@ -53,10 +53,10 @@ class Progress:
             return
         self.last = now
         rate = (done - self.start_done) / max(now - self.t0, 1e-9)
-        eta = (total - done) / rate if rate > 0 else float("nan")
+        eta = f"{(total - done) / rate:.0f} s" if rate > 0 else "unknown (none done yet)"
         print(
             f"{done}/{total} {self.unit}s ({100 * done / total:.0f} %), {rate:.1f} {self.unit}s/s, "
-            f"ETA {eta:.0f} s",
+            f"ETA {eta}",
             file=self.stream,
             flush=True,
         )
@@ -75,10 +75,6 @@ def _cmd_study(args: argparse.Namespace) -> int:
     check_output(args.out, folder=True, option="--out")
     config = StudyConfig(seed=args.seed, n_restarts=args.restarts)
     progress = Progress()
-    if args.scheduler is not None:  # a lost cluster is the command's one line, not Dask's log
-        import logging
-
-        logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
     t0 = time.perf_counter()
     try:
         outcome = run_study(
@@ -134,14 +130,14 @@ def _trials(text: str) -> int:
 
 def add_study_parser(sub) -> None:
     """Register ``cascal study`` on the subparsers ``sub``."""
-    from .cli import positive_int, restarts, seed
+    from .cli import restarts, seed, worker_count
 
     p = sub.add_parser("study", help="run the paper's Monte Carlo study (resumable)")
     p.add_argument("--trials", type=_trials, default=12000, help="number of trials (12000)")
     p.add_argument("--seed", type=seed, default=0, help="root seed (0)")
     p.add_argument("--restarts", type=restarts, default=3, help="optimiser starts (3)")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=positive_int, default=None, help="processes (CPU count)")
+    where.add_argument("--workers", type=worker_count, default=None, help="processes (CPU count)")
     where.add_argument(
         "--scheduler", default=None, help="Dask scheduler address, e.g. tcp://h:8786"
     )

@@ -63,6 +63,12 @@ def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
+#: Most local worker processes a command or study starts: each imports NumPy and SciPy
+#: (a review: --workers 3000000000 crashed inside multiprocessing, and 100000 started one
+#: process per task).
+MAX_WORKERS = 256
+
+
 def spawn_pool(n_workers: int, initializer: Callable[..., None], initargs: tuple = ()):
     """A pool of ``n_workers`` spawned processes (none shares the parent's state);
     ``initializer`` should call :func:`ignore_interrupts`."""

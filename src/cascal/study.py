@@ -33,6 +33,7 @@ from .io.atomic import save_figure, together, write_text
 from .io.studydb import StudyDB
 from .montecarlo import StudyConfig, TrialResult, run_chunk, run_trial, summarize
 from .pool import (
+    MAX_WORKERS,
     completed,
     deferred_signals,
     ignore_interrupts,
@@ -102,6 +103,8 @@ def run_study(
     config = config or StudyConfig()
     if int(trials) < 1 or (workers is not None and int(workers) < 1):
         raise InputError(f"expected at least 1 trial and 1 worker, got {trials} and {workers}")
+    if workers is not None and int(workers) > MAX_WORKERS:
+        raise InputError(f"workers: expected at most {MAX_WORKERS} processes, got {workers}")
     client = _connect(scheduler) if scheduler is not None and executor is None else None
     if client is not None:
         client.run(pin_blas)  # workers run tasks on threads: one BLAS limit for all of them
@@ -114,9 +117,11 @@ def run_study(
             client.close()
         raise
     try:
-        pending = sorted(set(range(trials)) - db.done())
+        before = db.results()  # every stored record checked before any work (a review: a
+        # damaged one had been found after the pending trials were computed)
+        pending = sorted(set(range(trials)) - {r.index for r in before})
         if pending:
-            _check_same_numbers(config, db.first(), folder)
+            _check_same_numbers(config, before[0] if before else None, folder)
         n_workers = workers or multiprocessing.cpu_count()
         size = chunk or max(1, min(50, len(pending) // (8 * n_workers) or 1))
         chunks = [pending[i : i + size] for i in range(0, len(pending), size)]
@@ -272,8 +277,18 @@ CONNECT_SECONDS = 10.0
 def _connect(address: str):
     """A Dask client of the scheduler at ``address``; a bad address is an InputError, and
     so is one where nothing answers Dask's handshake within :data:`CONNECT_SECONDS`."""
-    from distributed import Client
+    try:
+        from distributed import Client
+    except ImportError:
+        raise InputError(
+            f"--scheduler {address}: needs Dask's distributed package, which is not installed: "
+            "pip install 'cascal[dask]'"
+        ) from None
+    import logging
 
+    # a lost cluster is the study's one line, not also Dask's log (set after the import,
+    # which configures that logger)
+    logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
     try:
         _handshake(address, CONNECT_SECONDS)
         return Client(address, timeout=f"{CONNECT_SECONDS:g}s")

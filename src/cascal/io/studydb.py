@@ -47,6 +47,8 @@ class StudyDB:
         self.methods = list(config["methods"])
         if self.path.is_dir():
             raise self._refuse("is a folder, not a study database")
+        if self.path.exists() and not self.path.is_file():  # (through links)
+            raise self._refuse("is not a regular file (a device or a pipe), not a study database")
         self._lock = _lock_folder(self.folder)
         try:
             self.con = sqlite3.connect(self.path)
