@@ -16,6 +16,7 @@ from cascal.linalg import (
     logdet,
     pivots_ok,
 )
+from cascal.noise import Dense, Diagonal
 from utils import assert_allclose, dense_lml, se
 
 
@@ -167,11 +168,12 @@ def test_a_noiseless_factor_beyond_round_off_conditioning_gets_jitter():
 
 def test_a_singular_known_noise_with_correlations_and_no_white_noise_gets_jitter():
     """A review's case: a shared offset of known variance (``1e-10`` everywhere, rank 1) as
-    the whole noise, no white noise: ``K + N`` (condition 2.8e16) factorised with no jitter
-    and a likelihood off by half (-2.03e7 against -1.37e7 in 80-digit arithmetic). Its
-    positive diagonal had counted as noise; a noise with correlations bounds no pivot
-    below, so the factor is checked as a noiseless one's, jitter recorded and warned of.
-    A well-conditioned dense noise keeps its exact factor."""
+    the whole noise, no white noise: ``K + N`` (condition 2.8e16) was factorised as it was,
+    with no jitter recorded and a likelihood of round-off. Its positive diagonal had
+    counted as noise, but a singular dense noise bounds no pivot below: the factor is now
+    checked as a noiseless one's (jitter recorded and warned of, as with ``noise=0``). A
+    dense noise of full rank, or one beside a white part (a second review: jitter had been
+    added there too), bounds the pivots and keeps the exact factor."""
     n = 20
     x = np.linspace(0, 1, n)
     y = x + 1e-4 * np.sin(3 * x) + 1e-7 * np.random.default_rng(0).standard_normal(n)
@@ -185,5 +187,9 @@ def test_a_singular_known_noise_with_correlations_and_no_white_noise_gets_jitter
     full = shared + 1e-9 * np.eye(n)  # the same offset beside a white part: no jitter
     fit = fit_gp(x, y, noise=full, learn_noise=False, hyperparameters=hp)
     Kt = se(x, x, 0.2, 1e-6) + full
+    assert fit.jitter == 0.0
+    assert fit.log_marginal_likelihood == pytest.approx(dense_lml(y - x, Kt), rel=1e-12)
+    beside = Diagonal(np.full(n, 1e-9)) + Dense(shared)  # the same, as a sum of two parts
+    fit = fit_gp(x, y, noise=beside, learn_noise=False, hyperparameters=hp)
     assert fit.jitter == 0.0
     assert fit.log_marginal_likelihood == pytest.approx(dense_lml(y - x, Kt), rel=1e-12)

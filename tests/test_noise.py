@@ -223,3 +223,20 @@ def test_dense_from_factor(rng, k):
         Dense.from_factor(np.ones(N))
     with pytest.raises(InputError, match="NaN"):
         Dense.from_factor(np.where(U > 0, np.nan, U))
+
+
+def test_floor_bounds_the_smallest_eigenvalue(rng):
+    """``floor`` is a lower bound of the covariance's smallest eigenvalue, 0 where it may
+    be singular: it decides whether a factor needs the noiseless check."""
+    n = 12
+    A = rng.standard_normal((n, n))
+    full = A @ A.T + 0.5 * np.eye(n)
+    shared = 1e-10 * np.ones((n, n))  # rank 1
+    v = rng.uniform(1.0, 2.0, n)
+    assert Diagonal(v).floor(n) == v.min()
+    assert Dense(full).floor(n) == pytest.approx(np.linalg.eigvalsh(full).min(), rel=1e-10)
+    assert Dense(shared).floor(n) == 0.0
+    assert Dense.from_factor(np.ones((n, 1))).floor(n) == 0.0
+    total = Diagonal(v) + Dense(full)
+    assert 0.0 < total.floor(n) <= np.linalg.eigvalsh(total.dense(n)).min()
+    assert (Diagonal(0.0) + Dense(shared)).floor(n) == 0.0

@@ -32,14 +32,12 @@ RATIO_MAX = 1e7
 
 def noiseless(known: Noise | None, n: int, white: float) -> bool:
     """Whether a target covariance of n points with the known noise ``known`` and a white
-    noise of variance ``white`` may hold no noise in some direction: none at some point of
-    its diagonal (a kernel matrix alone there), or a known noise with correlations and no
-    white noise (a dense noise can be singular, a shared offset of rank 1 say, whatever its
-    diagonal). Its Cholesky factor is then checked for pivots of round-off
-    (:func:`cascal.linalg.pivots_ok`)."""
-    if white != 0.0:
-        return False
-    return known is None or not known.is_diagonal or float(np.min(known.diagonal(n))) <= 0.0
+    noise of variance ``white`` may hold no noise in some direction: no white noise and a
+    known noise whose smallest eigenvalue may be 0 (:meth:`cascal.noise.Noise.floor`):
+    none at some point of its diagonal (a kernel matrix alone there), or a singular dense
+    noise (a shared offset of rank 1, whatever its diagonal). Its Cholesky factor is then
+    checked for pivots of round-off (:func:`cascal.linalg.pivots_ok`)."""
+    return white == 0.0 and (known is None or known.floor(n) <= 0.0)
 
 
 class Objective:

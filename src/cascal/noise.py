@@ -37,6 +37,12 @@ class Noise:
         w, V = np.linalg.eigh(self.dense(n))
         return _low_rank(w, V)
 
+    def floor(self, n: int) -> float:
+        """A lower bound of the covariance's smallest eigenvalue (target unit squared): 0
+        where it may be singular. A factorisation of a kernel matrix plus this noise has
+        every squared pivot above it."""
+        return float(np.min(self.diagonal(n), initial=np.inf)) if self.is_diagonal else 0.0
+
     def add_to(self, K: np.ndarray) -> np.ndarray:
         """``K + covariance`` as a new array, K of shape (n, n)."""
         n = len(K)
@@ -185,6 +191,14 @@ class Dense(Noise):
             object.__setattr__(out, name, value)
         return out
 
+    def floor(self, n: int) -> float:
+        """The smallest eigenvalue found when the covariance was checked (0 where none
+        was, as for a model file's, or where it is within round-off, n eps times the
+        trace, of 0: a shared offset's rank-1 covariance)."""
+        self._check(n)
+        small = n * np.finfo(float).eps * float(np.trace(self.cov))
+        return self.min_eigenvalue if self.min_eigenvalue > small else 0.0
+
     def _check(self, n: int) -> None:
         if self.cov.shape != (n, n):
             raise InputError(f"dense noise: expected shape ({n}, {n}), got {self.cov.shape}")
@@ -217,6 +231,10 @@ class NoiseSum(Noise):
 
     def diagonal(self, n: int) -> np.ndarray:
         return np.sum([p.diagonal(n) for p in self.parts], axis=0) if self.parts else np.zeros(n)
+
+    def floor(self, n: int) -> float:
+        """The sum of its parts' floors (Weyl's inequality)."""
+        return float(sum(p.floor(n) for p in self.parts))
 
     def dense(self, n: int) -> np.ndarray:
         out = np.zeros((n, n))
