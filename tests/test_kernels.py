@@ -287,3 +287,15 @@ def test_a_length_scale_whose_square_underflows_is_refused(cls):
     with pytest.raises(ValueError, match="length_scale must be above 1e-154, got 1e-300"):
         cls(1e-300, 1.0)
     assert cls(1e-150, 1.0)(np.array([0.0]), np.array([0.0]))[0, 0] == 1.0
+
+
+def test_common_period_of_kernels_that_repeat_whole():
+    from cascal.kernels import Constant, Periodic, common_period
+
+    p = Periodic(period=360.0)
+    assert common_period(p) == 360.0
+    assert common_period(p + Constant(1.0)) == 360.0
+    assert common_period(Constant(2.0) * (p + Periodic(0.5, 1.0, period=360.0))) == 360.0
+    assert common_period(p + Periodic(period=180.0)) is None  # two periods
+    assert common_period(p + SquaredExp()) is None  # the SE part does not repeat
+    assert common_period(SquaredExp()) is None and common_period(Constant(1.0)) is None

@@ -287,6 +287,16 @@ def test_a_position_repeated_exactly_is_refused_where_the_noise_is_learned():
     end = np.r_[x, -1.0, 3.8], np.r_[y, y[0] - 1.0, y[5] + 3.0]
     with pytest.raises(InputError, match=r"0.0 and -1.0, whole periods apart, at indices 0 and 6"):
         fit_gp(*end, kernel="periodic", period=1.0)
+    # a second review: sums and products with constants repeat whole too; and two
+    # readings the same to round-off are named so
+    from cascal.kernels import Constant, Periodic
+
+    for kernel in (Periodic(period=1.0) + Constant(1e-6), Constant(1.0) * Periodic(period=1.0)):
+        with pytest.raises(InputError, match=r"whole periods apart"):
+            fit_gp(*turn, kernel=kernel)
+    near = np.r_[x, np.nextafter(x[1], 1.0)], np.r_[y, y[1]]
+    with pytest.raises(InputError, match=r"0.2 and 0.20000000000000004, the same to round-off"):
+        fit_gp(*near, kernel="periodic", period=1.0)
     moved = np.r_[x, x[1] + 1.0], np.r_[y, y[1] + 1.0 + 1e-4]
     assert np.isfinite(fit_gp(*moved, kernel="periodic", period=1.0).noise_variance)
     assert np.isfinite(fit_gp(*turn, kernel="se").noise_variance)  # not one position there

@@ -20,7 +20,7 @@ from scipy.linalg import lapack, solve_triangular
 
 from . import linalg, surrogate
 from .errors import InputError, JitterWarning, NumericalError
-from .kernels import Kernel, Periodic, Product, Sum, _Scaled, make_kernel
+from .kernels import Kernel, Periodic, Product, Sum, _Scaled, common_period, make_kernel
 from .likelihood import Objective, noiseless, search_bounds, theta_names
 from .means import Mean, make_mean
 from .noise import Dense, Diagonal, Noise, as_noise
@@ -788,9 +788,10 @@ def _check_no_exact_repeats(
     either reading (contradicting targets are refused before): the learned noise's
     likelihood then grows without bound as that noise goes to 0, and the fit reads the
     noise as signal (a review: 12 readings with one pair repeated ended with u 10 times
-    below the error). For the periodic kernel, readings a whole number of periods apart
-    (to round-off) are the same position. ``x``, ``r``: shape (n,)."""
-    period = kern.period if isinstance(kern, Periodic) else None
+    below the error). For a periodic kernel (:func:`cascal.kernels.common_period`: with
+    constants too), readings a whole number of periods apart (to round-off) are the same
+    position. ``x``, ``r``: shape (n,)."""
+    period = common_period(kern)
     key = x if period is None else np.mod(x, period)
     order = np.argsort(key, kind="stable")
     ks = key[order]
@@ -810,15 +811,18 @@ def _check_no_exact_repeats(
         i, j = sorted(int(v) for v in pair)
         if i == j or var[i] != 0.0 or var[j] != 0.0:
             continue
-        if x[i] == x[j]:
-            where = f"the same position {float(x[i])!r}"
+        a, b = float(x[i]), float(x[j])
+        fix = "keep one of them: to the periodic kernel they are one position"
+        if a == b:
+            where = f"the same position {a!r}"
             fix = (
                 "average repeated readings (cascal.aggregate_repeats) so they become one "
                 "point with a known noise variance"
             )
+        elif abs(a - b) < 0.5 * (period or 0.0):
+            where = f"positions {a!r} and {b!r}, the same to round-off,"
         else:
-            where = f"positions {float(x[i])!r} and {float(x[j])!r}, whole periods apart,"
-            fix = "keep one of them: to the periodic kernel they are one position"
+            where = f"positions {a!r} and {b!r}, whole periods apart,"
         raise InputError(
             f"{names[0]}: {where} at indices {i} and {j}, with the same correction and no "
             f"known noise: a learned noise would take the pair as noise-free; {fix}"

@@ -316,11 +316,27 @@ class Product(_Binary):
 KERNEL_NAMES = ("se", "matern32", "matern52", "periodic")
 
 
+def _leaves(kernel: Kernel) -> list[Kernel]:
+    """The kernels a sum or product is made of, left to right (``[kernel]`` for one)."""
+    if isinstance(kernel, _Binary):
+        return _leaves(kernel.left) + _leaves(kernel.right)
+    return [kernel]
+
+
 def _has_periodic(kernel: Kernel) -> bool:
     """Whether ``kernel`` is or holds a :class:`Periodic` one."""
-    if isinstance(kernel, _Binary):
-        return _has_periodic(kernel.left) or _has_periodic(kernel.right)
-    return isinstance(kernel, Periodic)
+    return any(isinstance(k, Periodic) for k in _leaves(kernel))
+
+
+def common_period(kernel: Kernel) -> float | None:
+    """The period of a kernel that repeats whole: periodic kernels of one period, with
+    constants, in any sums and products (positions whole periods apart are one position
+    to it); None for any other."""
+    leaves = _leaves(kernel)
+    periods = {k.period for k in leaves if isinstance(k, Periodic)}
+    if len(periods) != 1 or not all(isinstance(k, Periodic | Constant) for k in leaves):
+        return None
+    return float(periods.pop())
 
 
 def make_kernel(
