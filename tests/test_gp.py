@@ -1053,3 +1053,21 @@ def test_corrections_all_zero_with_a_known_noise_fit_alike_in_any_unit():
         assert np.exp(fit.optimization.bounds[1, 1]) / s**2 == pytest.approx(1e-4, rel=1e-12)
     assert_allclose(u[1], u[0], rtol=1e-9)
     assert_allclose(u[2], u[0], rtol=1e-9)
+
+
+def test_a_periodic_kernel_with_a_constant_predicts_any_turn_as_its_angle():
+    """A review: the turn a periodic kernel's far readings are moved into served the plain
+    periodic kernel only; with a constant beside it (a sum that repeats whole too), u came
+    out 0 a billion turns away."""
+    from cascal.kernels import Constant, Periodic
+
+    rng = np.random.default_rng(2)
+    x = np.sort(rng.uniform(0.0, 360.0, 30))
+    y = x + 1e-3 * np.sin(np.deg2rad(2 * x)) + 1e-5 * rng.standard_normal(30)
+    gp = fit_gp(x, y, kernel=Periodic(period=360.0) + Constant(1e-8), n_restarts=1)
+    angle = np.array([10.0, 200.0])
+    mean, std = gp.predict(angle, return_std=True)
+    far = angle + 360.0 * 1e9
+    far_mean, far_std = gp.predict(far, return_std=True)
+    assert_allclose(far_std, std, rtol=1e-6)
+    assert np.all(np.abs((far_mean - far) - (mean - angle)) <= 4.0 * np.spacing(far))

@@ -246,9 +246,10 @@ class FittedGP:
         """``x`` (m,) with a periodic kernel's positions beyond the data's turn moved into
         it by whole periods, else ``x`` itself: the kernel is the same there, and a
         position many turns away would lose digits in it (1e9 turns away, u came out 0)."""
-        if not isinstance(self.kernel, Periodic) or not x.size:
+        p = common_period(self.kernel)  # (periodic kernels with constants repeat too)
+        if p is None or not x.size:
             return x
-        lo, p = float(self.x.min()), self.kernel.period
+        lo = float(self.x.min())
         away = (x < lo) | (x >= lo + p)
         return np.where(away, lo + np.mod(x - lo, p), x) if away.any() else x
 
