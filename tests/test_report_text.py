@@ -113,7 +113,11 @@ def test_figures_of_a_partly_measured_turn_are_scaled_over_what_was_measured():
     ax, rx = stage_figure(view, unit="deg", period=360.0).axes
     seen = ~in_arc(view.grid, arc_width(view.arc, 360.0), 360.0)
     top = 3600.0 * max(np.abs(view.residuals).max(), view.band[seen].max())
+    top = max(top, 3600.0 * view.residual_band.max())  # (a second review: it had been cut)
     assert rx.get_ylim() == pytest.approx((-1.15 * top, 1.15 * top))
+    (noise,) = [ln for ln in rx.get_lines() if ln.get_label() == "95 % of target noise"]
+    assert np.max(noise.get_ydata()) < rx.get_ylim()[1]  # drawn whole
+    assert 3600.0 * view.band.max() > 5.0 * rx.get_ylim()[1]  # the arc's band: off the axis
     assert "device readings leave out (flagged)" in [
         t.get_text() for t in ax.get_legend().get_texts()
     ]

@@ -98,6 +98,7 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
     scale = max(
         np.max(np.abs(view.residuals), initial=0.0),
         np.max(view.band[seen], initial=0.0) if view.band is not None else 0.0,
+        np.max(view.residual_band, initial=0.0) if view.residual_band is not None else 0.0,
     )
     fr, sr = display_scale(unit, float(scale) or 1.0)
     if view.band is not None:
@@ -120,7 +121,8 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
         )  # fmt: skip
     _shade(rx, view.gaps, period, None)
     if view.arc is not None and not seen.all():
-        rx.set_ylim(-1.15 * scale * fr, 1.15 * scale * fr)
+        if view.band is not None and np.max(view.band) > 1.15 * scale:
+            rx.set_ylim(-1.15 * scale * fr, 1.15 * scale * fr)
         _shade_arc(ax, rx, arc=view.arc, period=period)
         ax.legend(fontsize=7, loc="best")  # again, with the arc
     rx.set_ylabel(f"residual, target - fit [{sr}]")
@@ -146,11 +148,12 @@ def correction_figure(curve: CurveView, *, unit: str, period: float | None = Non
         seen = _measured(curve.grid, curve.arc, period)  # the arc left out: U there clipped
         top = float(np.max(U[seen], initial=0.0)) or float(np.max(U))
         fu, uu = display_scale(unit, top)
-        label = "± U (k = 2)" if seen.all() else "± U (k = 2), off the axis in the arc left out"
+        clipped = bool(np.max(U) > 1.15 * top)
+        label = "± U (k = 2), off the axis in the arc left out" if clipped else "± U (k = 2)"
         axes[1].fill_between(curve.grid, -U * fu, U * fu, color="C0", alpha=0.3, lw=0, label=label)
         axes[1].axhline(0.0, color="0.3", lw=0.8)
         axes[1].set_ylabel(f"expanded uncertainty [{uu}]")
-        if not seen.all():
+        if clipped:
             axes[1].set_ylim(-1.15 * top * fu, 1.15 * top * fu)
     for a in axes:
         _shade(a, curve.gaps, period, "reference could not measure" if a is ax else None)
