@@ -253,6 +253,8 @@ def test_rotary_models_are_compared_over_the_arc_both_devices_cover(monkeypatch)
     monkeypatch.setattr(workflow, "measured_arc", lambda m: arcs[id(m)])
     r = compare_models(old, new, n=80).reading
     np.testing.assert_allclose(r, np.r_[np.linspace(300, 330, 30), np.linspace(410, 460, 50)])
+    arcs[id(new)] = (190.0, 370.0)  # 190-200 and 360-370: 500.5 each of 1001, rounded
+    assert compare_models(old, new, n=1001).reading.size == 1001
     arcs[id(new)] = (120.0, 250.0)
     with pytest.raises(InputError, match=r"cover \(300 to 460 and 120 to 250 deg\) do not overlap"):
         compare_models(old, new)

@@ -14,8 +14,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from .cli import EXIT_NOT_CONFORMING, check_outputs, load_checked, warn, write_outputs
     from .io.atomic import save_figure
     from .io.csvout import auto_decimals, write_columns
-    from .text import range_ends, range_text, reading_in_range
-    from .verification import BAND_LEVEL
+    from .text import range_ends, range_text
+    from .verification import BAND_LEVEL, breaks
     from .workflow import compare_models, measured_arc
 
     check_outputs(args.output, args.plot, inputs=(args.old, args.new))
@@ -37,10 +37,12 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     if old.periodic:
         span = f"one turn (period {old.period:g} {unit})"
         if measured_arc(old) or measured_arc(new):
-            a, b = range_ends(c.reading[0], c.reading[-1])
+            parts = np.split(c.reading, breaks(c.reading))  # (two, where arcs meet twice)
+            ends = [range_ends(p[0], p[-1]) for p in parts]
             span = (
-                f"the part of the turn both models' device readings cover, {a} to {b} {unit} "
-                f"(period {old.period:g})"
+                "the part of the turn both models' device readings cover, "
+                + " and ".join(f"{a} to {b}" for a, b in ends)
+                + f" {unit} (period {old.period:g})"
             )
     print(
         f"Compared {args.new} (new) with {args.old} (old) over {span}, {c.reading.size} readings."
@@ -49,8 +51,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         f"  old: fitted {old.created}, method {old.method}; new: fitted {new.created}, "
         f"method {new.method}"
     )
-    lo, hi = float(c.reading[0]), float(c.reading[-1])
-    at = f"{s['at']:.9g}" if old.periodic else reading_in_range(s["at"], lo, hi)
+    at = _at(c.reading, s["at"])
     print(
         f"  change of the correction (new - old): RMS {s['rms_change']:.4g} {unit}, largest "
         f"{s['max_change']:.4g} {unit} at reading {at}"
@@ -77,8 +78,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             f"an unchanged device's |change| / u stays below {c.k_band:.2f} over the whole "
             f"range with {100 * BAND_LEVEL:g} % probability"
         )
-        z_at = s["max_z_at"]
-        z_at = f"{z_at:.9g}" if old.periodic else reading_in_range(z_at, lo, hi)
+        z_at = _at(c.reading, s["max_z_at"])
         print(f"  largest |change| / u {s['max_z']:.3g}, at reading {z_at}; {band}")
         if c.changed:
             print(
@@ -121,6 +121,18 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         return EXIT_NOT_CONFORMING
     print(f"Within --max-change {args.max_change:g} {unit} everywhere.")
     return 0
+
+
+def _at(reading, v: float) -> str:
+    """A compared reading ``v``, printed within the stretch of ``reading`` (increasing,
+    shape (n,)) that holds it, as that stretch's ends are printed."""
+    import numpy as np
+
+    from .text import reading_in_range
+    from .verification import breaks
+
+    part = next(p for p in np.split(reading, breaks(reading)) if p[0] <= v <= p[-1])
+    return reading_in_range(v, float(part[0]), float(part[-1]))
 
 
 def add_compare_parser(sub: argparse._SubParsersAction) -> None:

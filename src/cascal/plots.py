@@ -18,7 +18,7 @@ from matplotlib.figure import Figure
 from .cascade import FittedCascade
 from .gp import Z95, FittedGP
 from .planning import Plan, find_gaps, variance_after
-from .verification import Comparison, Verification
+from .verification import Comparison, Verification, breaks
 
 __all__ = [
     "figure_style",
@@ -421,9 +421,8 @@ def plot_change(
     r, d = c.reading, c.change * scale
     band = c.k_band * c.u * scale if c.has_u else None
     beyond = np.where(c.z > c.k_band, d, np.nan) if c.has_u else None
-    step = np.diff(r)
-    if step.size > 1 and np.max(step) > 3.0 * np.median(step):  # two stretches of a turn:
-        cut = np.flatnonzero(step > 3.0 * np.median(step)) + 1  # no line between them
+    cut = breaks(r)
+    if cut.size:  # two stretches of a turn: no line between them
         r, d = np.insert(r, cut, np.nan), np.insert(d, cut, np.nan)
         if band is not None and beyond is not None:
             band, beyond = np.insert(band, cut, np.nan), np.insert(beyond, cut, np.nan)

@@ -335,6 +335,16 @@ def compare(
     return Comparison(r, a, b, _difference(b, a, p), ua, ub, u, band, bool(shared), float(k), p)
 
 
+def breaks(reading: np.ndarray) -> np.ndarray:
+    """Where increasing, nearly equally spaced ``reading`` (n,) jump (a step over three
+    times the median: two stretches of a turn, :func:`cascal.workflow.compare_models`): the
+    indices that start a new stretch, shape (k,)."""
+    step = np.diff(reading)
+    if step.size < 2:
+        return np.zeros(0, dtype=int)
+    return np.flatnonzero(step > 3.0 * np.median(step)) + 1
+
+
 def _ratio(e: np.ndarray, s: np.ndarray) -> np.ndarray:
     """``|e| / s`` elementwise; 0 where ``e`` is 0 (NaN there only where ``s`` is NaN)."""
     a = np.abs(e)

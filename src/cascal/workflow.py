@@ -551,9 +551,10 @@ def _common_turn(old: CalibrationModel, new: CalibrationModel, n: int) -> np.nda
     """``n`` readings (n,), increasing, over the part of the turn that both periodic
     models' device readings cover (:func:`measured_arc`; the whole turn where both cover
     it): equally spaced over one stretch, or shared by length between two (two arcs can
-    overlap at both ends). A review: compare judged the arc a swivel's device readings
-    leave out, where both models only extrapolate (a change of 0.0074 deg there failed a
-    --max-change that the measured arc passed with 0.00032).
+    overlap at both ends: :func:`cascal.verification.breaks` finds where). A review:
+    compare judged the arc a swivel's device readings leave out, where both models only
+    extrapolate (a change of 0.0074 deg there failed a --max-change that the measured
+    arc passed with 0.00032).
 
     Raises:
         InputError: The two arcs do not overlap.
@@ -578,11 +579,11 @@ def _common_turn(old: CalibrationModel, new: CalibrationModel, n: int) -> np.nda
             f"the arcs the two models' device readings cover ({ends[0]} and {ends[1]} "
             f"{old.unit}) do not overlap: nothing to compare"
         )
-    total = sum(hi - lo for lo, hi in pieces)
-    counts = [max(2, round(n * (hi - lo) / total)) for lo, hi in pieces]
-    return np.concatenate(
-        [np.linspace(lo, hi, k) for (lo, hi), k in zip(pieces, counts, strict=True)]
-    )
+    if len(pieces) == 1:
+        return np.linspace(*pieces[0], n)
+    (a, b), (c, d) = pieces  # n readings shared by length, two at least in each
+    k = min(max(2, round(n * (b - a) / (b - a + d - c))), n - 2)
+    return np.concatenate([np.linspace(a, b, k), np.linspace(c, d, n - k)])
 
 
 def shares_upstream(a: CalibrationModel, b: CalibrationModel, *, rtol: float = 1e-6) -> bool:
