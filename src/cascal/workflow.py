@@ -976,7 +976,7 @@ def fit_devices(
                         done(i, fut.result())
                     elif stopped:  # a worker stopped by a second Ctrl-C
                         _, device, out, _ = jobs_args[i]
-                        _discard(out)
+                        discard_model(out)
                         done(i, DeviceResult(Path(device).stem, device, error=INTERRUPTED))
             raise
         pool.shutdown(ex, wait_for_tasks=True, interrupted=False)
@@ -990,7 +990,7 @@ INTERRUPTED = "not fitted: the fleet was interrupted"
 _STOP = None
 
 
-def _discard(out: str) -> None:
+def discard_model(out: str | os.PathLike) -> None:
     """Remove the model path ``out`` of a device left unfitted, and any temporary file a
     worker stopped mid-device left beside it: as for a device that failed, no model (of
     this run or an earlier one) stays where the summary says "not fitted"."""
@@ -1016,7 +1016,7 @@ def _device_job(testbed: str, device: str, out: str, options: dict[str, object])
     fleet does not stop for one device), and a model of an earlier run at ``out`` goes."""
     name = Path(device).stem
     if _STOP is not None and _STOP.is_set():
-        _discard(out)
+        discard_model(out)
         return DeviceResult(name, device, error=INTERRUPTED)
     with warnings.catch_warnings(record=True) as caught:  # to the summary, not a worker's stderr
         warnings.simplefilter("always", CascalWarning)
@@ -1065,7 +1065,7 @@ def _device_fit(
     else:
         error = None
     if error is not None:
-        _discard(out)
+        discard_model(out)
         return DeviceResult(name, device, error=error)
     return DeviceResult(
         name,
