@@ -70,8 +70,12 @@ def test_change_draws_the_max_change_and_breaks_between_two_stretches():
     (change,) = _lines(ax, "change of the correction")
     x = np.asarray(change.get_xdata())
     assert np.isnan(x[30]) and x.size == 81 and np.all(np.isfinite(np.delete(x, 30)))
-    ok = plot_change(c, scale=3600.0, unit="arcsec", limit=1e-3).axes[0].get_title()
-    assert "within the max change" in ok
+    ok = plot_change(c, scale=3600.0, unit="arcsec", limit=1e-3).axes[0]
+    assert "within the max change" in ok.get_title()
+    far = plot_change(c, scale=3600.0, unit="arcsec", limit=1.0).axes[0]  # 3600 arcsec
+    (line,) = _lines(far, "±max change 3.6e+03 arcsec, off the axis")
+    top = max(0.72, c.k_band * c.u.max() * 3600.0)  # the change, 2e-4 deg, or the band
+    assert far.get_ylim() == pytest.approx((-1.15 * top, 1.15 * top))
 
 
 def test_cost_medians_are_written_without_exponents():

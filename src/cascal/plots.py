@@ -437,9 +437,15 @@ def plot_change(
     ax.axhline(0.0, color="k", lw=0.6)
     ax.plot(r, d, "-", color="C0", lw=1.2, label="change of the correction")
     if limit is not None:
-        shown = f"±max change {limit * scale:.3g} {unit}"
+        # a limit far beyond the change stays off the axis (a review: +-1100 um flattened a
+        # change of 2 um to a line on zero)
+        top = max(np.nanmax(np.abs(d)), np.nanmax(band) if band is not None else 0.0)
+        off = limit * scale > 3.0 * top > 0.0
+        shown = f"±max change {limit * scale:.3g} {unit}" + (", off the axis" if off else "")
         for sign, label in ((1.0, shown), (-1.0, None)):
             ax.axhline(sign * limit * scale, color="C1", ls="--", lw=1.0, label=label)
+        if off:
+            ax.set_ylim(-1.15 * top, 1.15 * top)
         verdict = "beyond" if s["max_change"] > limit else "within"
         title += f"; {verdict} the max change"
     if band is not None and beyond is not None:

@@ -461,7 +461,9 @@ def comparison_figure(
 ) -> Figure:
     """The figure of a recalibration's change (``model``: either of the two), in readable
     units, with the largest change allowed (``limit``, the model's unit) where given."""
-    top = max(float(np.max(np.abs(c.change))), limit or 0.0)
+    top = float(np.max(np.abs(c.change)))
+    if limit is not None and limit <= 3.0 * top:  # (a limit far beyond: off the axis)
+        top = max(top, limit)
     scale, shown = display_scale(model.unit, top)
     return plot_change(c, scale=scale, unit=shown, xunit=model.unit, names=names, limit=limit)
 
