@@ -114,6 +114,14 @@ def check_output(
     os.unlink(probe)
 
 
+def file_label(path: str | Path, what: str = "a file") -> str:
+    """The name of the input file ``path`` for a title or header, or ``"<what> read from a
+    pipe"`` where it is none (``/dev/fd/63`` of a process substitution, standard input):
+    a review found titles naming "63"."""
+    p = Path(path)
+    return p.name if p.is_file() else f"{what} read from a pipe"
+
+
 def check_outputs(output: str | None, plot: str | None, inputs: Sequence[str | Path]) -> None:
     """Refuse, before any work, a table ``-o`` and a figure ``--plot`` that cannot be
     written (:func:`check_output`), a figure of another format than PNG, SVG or PDF, or
@@ -555,7 +563,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     model = load_checked(args.model, o=args.output)
     if not is_stdout(args.output) and Path(args.output).suffix.lower() not in (".html", ".htm"):
         raise InputError(f"-o {args.output}: expected an .html file name (the report is HTML)")
-    path = write_text(args.output, build_report(model, source=Path(args.model).name))
+    path = write_text(args.output, build_report(model, source=file_label(args.model, "a model")))
     print(f"Report written to {path}")
     return 0
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 __all__ = ["add_compare_parser"]
 
@@ -11,7 +10,14 @@ __all__ = ["add_compare_parser"]
 def _cmd_compare(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .cli import EXIT_NOT_CONFORMING, check_outputs, load_checked, warn, write_outputs
+    from .cli import (
+        EXIT_NOT_CONFORMING,
+        check_outputs,
+        file_label,
+        load_checked,
+        warn,
+        write_outputs,
+    )
     from .io.atomic import save_figure
     from .io.csvout import auto_decimals, write_columns
     from .text import range_ends, range_text
@@ -60,7 +66,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     if args.plot is not None:  # drawn before anything is written
         from .report import comparison_figure
 
-        names = (Path(args.old).name, Path(args.new).name)
+        names = (file_label(args.old, "a model"), file_label(args.new, "a model"))
         fig = comparison_figure(old, c, names, limit=args.max_change)
     if c.has_u:
         how = (

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 __all__ = ["add_verify_parser"]
 
@@ -20,6 +19,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         EXIT_NOT_CONFORMING,
         HUGE,
         check_outputs,
+        file_label,
         load_checked,
         warn,
         warn_homoscedastic,
@@ -74,7 +74,8 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     if args.plot is not None:  # drawn before anything is written
         from .report import verification_figure
 
-        fig = verification_figure(model, v, (Path(args.model).name, Path(args.check).name))
+        names = (file_label(args.model, "a model"), file_label(args.check, "check points"))
+        fig = verification_figure(model, v, names)
     m = v.inside
     outside = ""
     first_out = int(table.rows[np.argmax(~m)])  # (the first row when none is outside)

@@ -273,3 +273,14 @@ def test_an_output_where_no_file_can_be_made_is_refused_before_work(tmp_path):
     check_output(tmp_path / "new" / "m.json")
     check_output(tmp_path, folder=True)
     assert [p.name for p in tmp_path.iterdir()] == ["link.json"]  # no probe left behind
+
+
+def test_an_input_from_a_pipe_is_named_as_such_in_titles(tmp_path):
+    """A review: figure titles and headers named a piped file by its pipe (/dev/fd/63 as
+    "63 against m.json")."""
+    from cascal.cli import file_label
+
+    (tmp_path / "m.json").write_text("{}")
+    os.mkfifo(tmp_path / "fifo")
+    assert file_label(tmp_path / "m.json") == "m.json"
+    assert file_label(tmp_path / "fifo", "check points") == "check points read from a pipe"
