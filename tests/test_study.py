@@ -661,20 +661,27 @@ def test_worker_counts_beyond_the_cap_and_a_missing_dask_are_input_errors(tmp_pa
     assert not (tmp_path / "d").exists()
 
 
-def test_dasks_client_log_is_silenced_after_dask_is_imported(monkeypatch):
+def test_dasks_client_log_is_silenced_after_dask_is_imported():
     """A review's case: a lost cluster printed Dask's ERROR line before the study's own
     one line: the command had set that logger's level before importing Dask, whose import
-    set it again."""
-    import logging
-
-    distributed = pytest.importorskip("distributed")
-    from cascal import study
-
-    logging.getLogger("distributed.client").setLevel(logging.WARNING)  # as Dask's import
-    monkeypatch.setattr(study, "_handshake", lambda address, seconds: None)
-    monkeypatch.setattr(distributed, "Client", lambda address, timeout: "client")
-    assert study._connect("tcp://127.0.0.1:1") == "client"
-    assert logging.getLogger("distributed.client").level == logging.CRITICAL
+    set it again. In a fresh process (Dask not yet imported), connecting sets it after."""
+    pytest.importorskip("distributed")
+    script = (
+        "import logging\n"
+        "from cascal import study\n"
+        "def refuse(address, seconds):\n"
+        "    raise OSError('refused')\n"
+        "study._handshake = refuse\n"
+        "try:\n"
+        "    study._connect('tcp://127.0.0.1:1')\n"
+        "except Exception as exc:\n"
+        "    assert 'cannot reach a Dask scheduler' in str(exc), exc\n"
+        "print(logging.getLogger('distributed.client').level)\n"
+    )
+    cmd = [sys.executable, "-c", script]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "50"  # CRITICAL
 
 
 def test_progress_says_eta_unknown_before_a_trial_is_done():

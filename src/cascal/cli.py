@@ -418,6 +418,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     from .cli_screening import SKIPPED, report_findings, report_screening, screening_lines
     from .io.atomic import write_text
     from .io.modelfile import save_model
+    from .pool import MAX_WORKERS
     from .text import turn_text
     from .workflow import fit_devices, fit_findings, fit_model, screen_stages
 
@@ -511,7 +512,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             if r.source is not None:
                 _report_chain("fit-devices", [tb.sources[0], r.source])
 
-    jobs = args.jobs or os.cpu_count() or 1
+    jobs = args.jobs or min(os.cpu_count() or 1, MAX_WORKERS)
     try:
         results = fit_devices(
             tb_model, files, out / "devices", options=options, jobs=jobs, on_result=report

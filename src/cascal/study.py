@@ -122,7 +122,7 @@ def run_study(
         pending = sorted(set(range(trials)) - {r.index for r in before})
         if pending:
             _check_same_numbers(config, before[0] if before else None, folder)
-        n_workers = workers or multiprocessing.cpu_count()
+        n_workers = workers or min(multiprocessing.cpu_count(), MAX_WORKERS)
         size = chunk or max(1, min(50, len(pending) // (8 * n_workers) or 1))
         chunks = [pending[i : i + size] for i in range(0, len(pending), size)]
         done = trials - len(pending)

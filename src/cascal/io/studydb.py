@@ -179,21 +179,6 @@ class StudyDB:
                 raise self._refuse(f"has an unreadable record of trial {row[0]} ({exc})") from None
         return out
 
-    def first(self) -> TrialResult | None:
-        """The stored trial of the lowest index, or None when none is stored."""
-        cols = ", ".join(f"j_{m}" for m in self.methods)
-        query = f"SELECT idx, {cols}, redraws, fits, seconds FROM trials ORDER BY idx LIMIT 1"
-        try:
-            row = self.con.execute(query).fetchone()
-        except sqlite3.DatabaseError as exc:
-            raise self._unreadable(exc) from None
-        if row is None:
-            return None
-        try:
-            return self._record(row)
-        except (ValueError, TypeError) as exc:
-            raise self._refuse(f"has an unreadable record of trial {row[0]} ({exc})") from None
-
     def _record(self, row: tuple) -> TrialResult:
         """A stored row as a trial; ValueError where a field is not what a trial holds."""
         k = len(self.methods)
