@@ -146,9 +146,10 @@ def plot_cascade(
             given, each panel shows deviations from the true map, so the bands are visible.
         fig: Figure to draw into (a new one if None).
         scale, unit: Display scale for corrections (default micrometres).
-        upper: Per stage after the first, its upper sensor's readings (the stage above is
-            evaluated there for its targets), shape (n_k,): the stage above is drawn over
-            them too, where it extrapolates. Stage 0 gets its gaps and ends hatched.
+        upper: ``upper[k]``: the readings of stage ``k + 1``'s more accurate sensor, at
+            which stage ``k`` was evaluated for its targets, shape (n,): stage ``k`` is
+            drawn over them too, where it extrapolates (``truths[k]`` must hold there). Stage
+            0 gets its gaps and ends hatched.
     """
     models = [m for m in fitted.models if isinstance(m, FittedGP)]
     if not models:

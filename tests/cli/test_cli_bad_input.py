@@ -83,6 +83,11 @@ FIT_CASES = {
         [],
         ["not above", "2 of its 6 steps are flat", "closer together than the readings' resolution"],
     ),
+    "back_and_flat_steps": (
+        "a,b\n1,1\n2,2.5\n3,2.4\n4,4\n5,5\n6,5\n7,7\n",
+        [],
+        ["1 of its 6 steps go back and 1 are flat", "closer together than the readings' noise"],
+    ),
     "periodic_without_period": (GOOD, ["--kernel", "periodic"], ["--period"]),
     "negative_period": (GOOD, ["--kernel", "periodic", "--period", "-3"], ["--period", "positive"]),
 }

@@ -298,9 +298,11 @@ def read_stage(
 
         steps = rep.y.size - 1
         flat = int(np.count_nonzero(np.diff(rep.y) == 0))
-        hint = f"; {bad.size} of its {steps} steps go back: " + (
+        back = bad.size - flat
+        also = f" and {flat} are flat" if flat else ""
+        hint = f"; {back} of its {steps} steps go back{also}: " + (
             "is one sensor's direction reversed, or are the columns swapped?"
-            if 2 * bad.size > steps
+            if 2 * back > steps
             else "are the points closer together than the readings' noise? Then repeat "
             "readings at fewer, wider-spaced positions (repeats are averaged)"
         )
