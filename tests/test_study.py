@@ -212,6 +212,18 @@ def test_progress_prints_sparse_plain_lines_when_not_a_terminal():
     assert "ETA" in lines[0]
 
 
+def _read_pty(master: int, until: str = "10/10", seconds: float = 5.0) -> str:
+    """What a pseudo-terminal's other end wrote, read until ``until`` shows (one read can
+    return a line at a time: CI once saw the first of two lines only)."""
+    import select
+
+    out, deadline = "", time.monotonic() + seconds
+    while until not in out and time.monotonic() < deadline:
+        if select.select([master], [], [], 0.1)[0]:
+            out += os.read(master, 65536).decode()
+    return out
+
+
 @pytest.mark.parametrize("columns", [100, 0])
 def test_progress_draws_a_bar_with_rate_on_a_terminal(columns):
     """On a terminal: a bar with the rate and ETA. A review's case: a pseudo-terminal whose
@@ -234,7 +246,7 @@ def test_progress_draws_a_bar_with_rate_on_a_terminal(columns):
         assert p.bar is None  # closed at the last trial: its rate is not the outputs' (a review)
         p.close()
         stream.flush()
-        out = os.read(master, 65536).decode()
+        out = _read_pty(master)
     os.close(master)
     if columns:
         assert "10/10" in out and "trial/s" in out
