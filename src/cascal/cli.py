@@ -519,14 +519,14 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         )
     except KeyboardInterrupt as exc:  # the summary of this run's devices so far
         from .pool import Terminated
-        from .workflow import INTERRUPTED, DeviceResult, discard_model
+        from .workflow import INTERRUPTED, DeviceResult, discard_model, model_path
 
         # every device not fitted is listed so, and keeps no model of an earlier run (a
         # review: those never started were left out, their old models beside the summary)
         fitted = {r.device for r in finished}
         for f in files:
             if f.stem not in fitted:
-                discard_model(out / "devices" / f"{f.stem}.json")
+                discard_model(model_path(out / "devices", f))
                 finished.append(DeviceResult(f.stem, str(f), error=INTERRUPTED))
         path = write_text(summary_path, _fleet_csv(finished, notes))
         what = "terminated" if isinstance(exc, Terminated) else "interrupted"

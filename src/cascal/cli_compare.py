@@ -39,11 +39,11 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             "independent calibrations of an unchanged device would differ by, not a "
             "recalibration",
         )
+    parts = np.split(c.reading, breaks(c.reading))  # (two where rotary arcs meet twice)
     span = f"their common range {range_text(c.reading[0], c.reading[-1])} {unit}"
     if old.periodic:
         span = f"one turn (period {old.period:g} {unit})"
         if measured_arc(old) or measured_arc(new):
-            parts = np.split(c.reading, breaks(c.reading))  # (two, where arcs meet twice)
             ends = [range_ends(p[0], p[-1]) for p in parts]
             span = (
                 "the part of the turn both models' device readings cover, "
@@ -57,7 +57,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         f"  old: fitted {old.created}, method {old.method}; new: fitted {new.created}, "
         f"method {new.method}"
     )
-    at = _at(c.reading, s["at"])
+    at = _at(parts, s["at"])
     print(
         f"  change of the correction (new - old): RMS {s['rms_change']:.4g} {unit}, largest "
         f"{s['max_change']:.4g} {unit} at reading {at}"
@@ -84,7 +84,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             f"an unchanged device's |change| / u stays below {c.k_band:.2f} over the whole "
             f"range with {100 * BAND_LEVEL:g} % probability"
         )
-        z_at = _at(c.reading, s["max_z_at"])
+        z_at = _at(parts, s["max_z_at"])
         print(f"  largest |change| / u {s['max_z']:.3g}, at reading {z_at}; {band}")
         if c.changed:
             print(
@@ -129,15 +129,13 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
-def _at(reading, v: float) -> str:
-    """A compared reading ``v``, printed within the stretch of ``reading`` (increasing,
-    shape (n,)) that holds it, as that stretch's ends are printed."""
-    import numpy as np
-
+def _at(parts, v: float) -> str:
+    """A compared reading ``v``, printed within the stretch of ``parts`` (the compared
+    readings' stretches, each increasing) that holds it, as that stretch's ends are
+    printed."""
     from .text import reading_in_range
-    from .verification import breaks
 
-    part = next(p for p in np.split(reading, breaks(reading)) if p[0] <= v <= p[-1])
+    part = next(p for p in parts if p[0] <= v <= p[-1])
     return reading_in_range(v, float(part[0]), float(part[-1]))
 
 

@@ -96,10 +96,9 @@ def turn_text(arc: tuple[float, float], unit: str, period: float) -> str:
     measured arc is rounded inward (a reading inside the printed one is inside the true
     one), which rounds the arc left out outward: the same two numbers."""
     a, b = measured_ends(arc)
-    u = unit
     return (
-        f"{a} to {b} {u} of the turn (period {period:g}; the device "
-        f"readings leave out {b} to {a} {u}: readings there are flagged)"
+        f"{a} to {b} {unit} of the turn (period {period:g}; the device "
+        f"readings leave out {b} to {a} {unit}: readings there are flagged)"
     )
 
 

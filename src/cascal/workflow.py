@@ -563,22 +563,21 @@ def _common_turn(old: CalibrationModel, new: CalibrationModel, n: int) -> np.nda
     arcs = [a for a in (measured_arc(old), measured_arc(new)) if a is not None]
     if not arcs:
         return np.linspace(0.0, period, n, endpoint=False)
-    (a1, b1), (a2, b2) = arcs[0], arcs[-1]
-    a2 = a1 + float(np.mod(a2 - a1, period))  # the second arc from within a turn of a1 on
-    b2 = a2 + (arcs[-1][1] - arcs[-1][0])
-    pieces = [(max(a1, lo), min(b1, hi)) for lo, hi in ((a2, b2), (a2 - period, b2 - period))]
-    pieces = sorted((lo, hi) for lo, hi in pieces if hi > lo)
-    if pieces:  # readings from the first turn on
-        shift = period * float(np.floor(pieces[0][0] / period))
-        pieces = [(lo - shift, hi - shift) for lo, hi in pieces]
-    if not pieces:
-        ends = [
-            f"{a:.9g} to {b:.9g}" for a, b in (measured_arc(m) or (0, period) for m in (old, new))
-        ]
-        raise InputError(
-            f"the arcs the two models' device readings cover ({ends[0]} and {ends[1]} "
-            f"{old.unit}) do not overlap: nothing to compare"
-        )
+    pieces = arcs[:1]  # one arc: itself; two: where they meet (at one end or at both)
+    if len(arcs) == 2:
+        (a1, b1), (a2, b2) = arcs
+        move = a1 + float(np.mod(a2 - a1, period)) - a2  # the second from within a turn of a1
+        a2, b2 = a2 + move, b2 + move
+        meet = [(max(a1, lo), min(b1, hi)) for lo, hi in ((a2, b2), (a2 - period, b2 - period))]
+        pieces = sorted((lo, hi) for lo, hi in meet if hi > lo)
+        if not pieces:
+            ends = [f"{a:.9g} to {b:.9g}" for a, b in arcs]
+            raise InputError(
+                f"the arcs the two models' device readings cover ({ends[0]} and {ends[1]} "
+                f"{old.unit}) do not overlap: nothing to compare"
+            )
+    shift = period * float(np.floor(pieces[0][0] / period))  # readings from the first turn on
+    pieces = [(lo - shift, hi - shift) for lo, hi in pieces]
     if len(pieces) == 1:
         return np.linspace(*pieces[0], n)
     (a, b), (c, d) = pieces  # n readings shared by length, two at least in each
@@ -943,10 +942,7 @@ def fit_devices(
     if unknown:
         raise InputError(f"exclude: {unknown[0]} is none of the device files")
     options = dict(options, exclude=exclude)
-    jobs_args = [
-        (str(testbed), str(Path(d)), str(Path(outdir) / f"{Path(d).stem}.json"), options)
-        for d in devices
-    ]
+    jobs_args = [(str(testbed), str(Path(d)), str(model_path(outdir, d)), options) for d in devices]
     results: dict[int, DeviceResult] = {}
 
     def done(i: int, res: DeviceResult) -> None:
@@ -988,6 +984,11 @@ INTERRUPTED = "not fitted: the fleet was interrupted"
 
 #: In a worker process of :func:`fit_devices`: the event set when the fleet is interrupted.
 _STOP = None
+
+
+def model_path(outdir: str | os.PathLike, device: str | os.PathLike) -> Path:
+    """Where :func:`fit_devices` writes the model of the device file ``device``."""
+    return Path(outdir) / f"{Path(device).stem}.json"
 
 
 def discard_model(out: str | os.PathLike) -> None:

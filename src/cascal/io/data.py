@@ -299,14 +299,15 @@ def read_stage(
         steps = rep.y.size - 1
         flat = int(np.count_nonzero(np.diff(rep.y) == 0))
         back = bad.size - flat
-        also = f" and {flat} are flat" if flat else ""
-        hint = f"; {back} of its {steps} steps go back{also}: " + (
-            "is one sensor's direction reversed, or are the columns swapped?"
-            if 2 * back > steps
-            else "are the points closer together than the readings' noise? Then repeat "
-            "readings at fewer, wider-spaced positions (repeats are averaged)"
-        )
-        if flat == bad.size:  # none goes back: the more accurate reading stands still
+        if back:
+            also = f" and {flat} are flat" if flat else ""
+            hint = f"; {back} of its {steps} steps go back{also}: " + (
+                "is one sensor's direction reversed, or are the columns swapped?"
+                if 2 * back > steps
+                else "are the points closer together than the readings' noise? Then repeat "
+                "readings at fewer, wider-spaced positions (repeats are averaged)"
+            )
+        else:  # none goes back: the more accurate reading stands still
             hint = f"; {flat} of its {steps} steps are flat ({yn} the same at other {xn}): " + (
                 f"is column {yn!r} a sensor that did not move, or a constant?"
                 if 2 * flat > steps
