@@ -211,3 +211,63 @@ def test_a_stage_beyond_float64s_scales_is_refused_by_name():
         assert big.hyperparameters[name] == pytest.approx(
             1e74**power * small.hyperparameters[name], rel=1e-5
         )
+
+
+@pytest.mark.parametrize("method", ["bayes", "lut"])
+def test_one_reading_as_a_number_gives_numbers_as_the_vector_path_does(method):
+    from cascal.simulation import simulate_trial
+
+    trial = simulate_trial(np.random.default_rng(3))
+    fitted = Cascade([trial.d2, trial.d1], method).fit()
+    r = 0.4321
+    vector = fitted.correct(np.array([r]))
+    for one in (r, np.float64(r), np.array(r)):
+        got = fitted.correct(one)
+        assert np.ndim(got) == 0 and got == vector[0]
+    assert fitted.correct(np.float32(r)) == fitted.correct(np.array([np.float32(r)]))[0]
+    with pytest.raises(InputError, match="readings: expected numbers, got str"):
+        fitted.correct("0.5")
+    with pytest.raises(InputError, match="readings: expected finite values, got nan"):
+        fitted.correct(float("nan"))
+    if method == "lut":
+        return
+    mean, std = fitted.correct(r, return_std=True)
+    mv, sv = fitted.correct([r], return_std=True)
+    assert (mean, std) == (mv[0], sv[0])
+    m, var = fitted.device.predict(r, return_cov=True)
+    assert np.ndim(var) == 0 and m == mv[0]
+    assert var == pytest.approx(std**2, rel=1e-9)
+
+
+def test_the_workflows_correct_takes_one_reading_as_a_number():
+    from cascal.workflow import correct, fit_model
+    from utils import demo_stages
+
+    model = fit_model(demo_stages(), n_restarts=1)
+    lo, hi = model.calibrated_range
+    for r in ((lo + hi) / 2, hi + 1.0):  # inside, and outside (flagged)
+        one, many = correct(model, r), correct(model, [r])
+        fields = (one.reading, one.corrected, one.u, one.out_of_range, one.U)
+        assert all(np.ndim(f) == 0 for f in fields)
+        assert fields == (
+            many.reading[0],
+            many.corrected[0],
+            many.u[0],
+            many.out_of_range[0],
+            many.U[0],
+        )
+
+
+@pytest.mark.parametrize("noise", [None, 0.0, 1e-150])
+def test_corrections_too_small_to_learn_from_are_refused_by_name(noise):
+    """Corrections of 1e-170 failed with a message about near-duplicates in the data, and
+    noiseless ones of 1e-74 on a NaN length scale; 2e-60 (above the limit) fits as 1 does,
+    with hyperparameters given any scale fits."""
+    x = np.linspace(0.0, 1.0, 20)
+    c = np.sin(5 * x)
+    for scale in (1e-170, 1e-74):
+        with pytest.raises(InputError, match=r"y: the corrections .* at most .*smaller unit"):
+            fit_gp(x, scale * c, noise=noise, mean="zero")
+    assert fit_gp(x, 1e-170 * c, mean="zero", hyperparameters=HP | {"variance": 1e-300})
+    tiny, unit = fit_gp(x, 2e-60 * c, mean="zero", noise=noise), fit_gp(x, c, mean="zero")
+    assert tiny.predict(0.3) / 2e-60 == pytest.approx(unit.predict(0.3), rel=1e-4)

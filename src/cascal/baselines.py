@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
-from .validation import as_positions, check_pair, frozen
+from .validation import as_positions, as_readings, check_pair, frozen, scalar_out
 
 __all__ = ["OffsetTable", "fit_table"]
 
@@ -43,9 +43,9 @@ class OffsetTable:
         object.__setattr__(self, "offsets", frozen(offsets))
 
     def __call__(self, readings: object) -> np.ndarray:
-        """Corrected positions ``readings + offset(readings)``, shape (m,)."""
-        r = as_positions(readings, "readings")
-        return r + np.interp(r, self.knots, self.offsets)
+        """Corrected positions ``readings + offset(readings)``, shape (m,); a number for one."""
+        r, scalar = as_readings(readings, "readings")
+        return scalar_out(r + np.interp(r, self.knots, self.offsets), scalar)
 
 
 def fit_table(x: object, y: object, names: tuple[str, str] = ("x", "y")) -> OffsetTable:

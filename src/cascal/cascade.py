@@ -24,7 +24,15 @@ from .gp import FittedGP, fit_gp, single_threaded_blas
 from .kernels import Kernel, make_kernel
 from .means import make_mean
 from .noise import Dense, Noise, as_noise
-from .validation import as_positions, check_count, check_increasing, check_pair, frozen
+from .validation import (
+    as_positions,
+    as_readings,
+    check_count,
+    check_increasing,
+    check_pair,
+    frozen,
+    scalar_out,
+)
 
 __all__ = ["METHODS", "Cascade", "FittedCascade", "Stage"]
 
@@ -90,12 +98,13 @@ class FittedCascade:
     def correct(
         self, readings: object, return_std: bool = False
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
-        """Corrected positions for device ``readings`` (m,), and their standard uncertainty.
+        """Corrected positions for device ``readings`` (m,), and their standard uncertainty;
+        numbers for one number.
 
         Raises:
             CascalError: ``return_std`` with the ``lut`` method, which carries no uncertainty.
         """
-        r = as_positions(readings, "readings")
+        r, scalar = as_readings(readings, "readings")
         model = self.device
         if isinstance(model, OffsetTable):
             if return_std:
@@ -103,8 +112,11 @@ class FittedCascade:
                     "method 'lut' (lookup tables) gives no uncertainty; use 'bayes' or "
                     "'homoscedastic' for a standard uncertainty of each corrected reading"
                 )
-            return model(r)
-        return model.predict(r, return_std=return_std)
+            return scalar_out(model(r), scalar)
+        if not return_std:
+            return scalar_out(model.predict(r), scalar)
+        mean, std = model.predict(r, return_std=True)
+        return scalar_out(mean, scalar), scalar_out(std, scalar)
 
 
 class Cascade:

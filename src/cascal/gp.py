@@ -25,7 +25,15 @@ from .likelihood import Objective, noiseless, search_bounds, theta_names
 from .means import Mean, make_mean
 from .noise import Dense, Diagonal, Noise, as_noise
 from .optimize import BOUND_TOL, OptimResult, _safe, maximize, newton_maximize
-from .validation import as_positions, check_count, check_pair, check_scale, frozen
+from .validation import (
+    as_positions,
+    as_readings,
+    check_corrections,
+    check_count,
+    check_pair,
+    check_scale,
+    frozen,
+)
 
 __all__ = ["FittedGP", "Objective", "Posterior", "fit_gp", "log_marginal_likelihood"]
 
@@ -209,16 +217,23 @@ class FittedGP:
 
         Returns:
             mean (m,); with ``return_std`` also the standard deviation (m,); with
-            ``return_cov`` the covariance (m, m) instead. Same unit as the targets.
+            ``return_cov`` the covariance (m, m) instead. Same unit as the targets. For
+            one number ``x``, numbers: the mean, the standard deviation or the variance.
         """
         if return_std and return_cov:
             raise InputError("predict: ask for return_std or return_cov, not both")
-        xs = as_positions(x, "x")
+        xs, scalar = as_readings(x, "x")
         with np.errstate(over="ignore"):  # a reading 1e154 away: (d / l)^2 is inf, k is 0
             if xs.size * self.x.size <= _ONE_THREAD:  # (the limit's 10 us would dominate)
-                return self._predict(xs, return_std, return_cov)
-            with single_threaded_blas():  # the same numbers whatever BLAS's threads
-                return self._predict(xs, return_std, return_cov)
+                out = self._predict(xs, return_std, return_cov)
+            else:
+                with single_threaded_blas():  # the same numbers whatever BLAS's threads
+                    out = self._predict(xs, return_std, return_cov)
+        if not scalar:
+            return out
+        if return_cov:
+            return out[0][0], out[1][0, 0]
+        return (out[0][0], out[1][0]) if return_std else out[0]
 
     def _predict(
         self, xs: np.ndarray, return_std: bool, return_cov: bool
@@ -434,6 +449,8 @@ def _fit_gp(
     if known is None and not learn_noise:
         raise InputError("noise: with learn_noise=False a known noise must be given")
     r = ya - m(xa)
+    if hyperparameters is None:
+        check_corrections(r, names[1], m.name)
     if learn_noise and hyperparameters is None:
         _check_no_exact_repeats(xa, r, known, names, kern)
     if hyperparameters is None and not np.any(r) and known is None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,10 +12,13 @@ from .errors import InputError
 __all__ = [
     "MIN_POINTS",
     "STAGE_MAX",
+    "STAGE_MIN_CORRECTION",
     "STAGE_MIN_SPAN",
     "Repeats",
     "aggregate_repeats",
     "as_positions",
+    "as_readings",
+    "check_corrections",
     "check_count",
     "check_increasing",
     "check_pair",
@@ -31,10 +35,18 @@ STAGE_MAX = 1e75
 #: A stage's positions must span at least this (where they span anything): its variances,
 #: in the unit squared, stay well above float64's smallest normal number.
 STAGE_MIN_SPAN = 1e-100
+#: A fitted stage's corrections (targets less the prior mean), where any is not 0, must
+#: reach this in magnitude: their variance, its products and the jitter of a noiseless
+#: factor (a 1e-12 fraction of it) stay well within float64. Corrections of 1e-170 had
+#: failed with a message about the data, and a noiseless fit of 1e-74 on a NaN length
+#: scale; 1e-60 fits with and without a known noise.
+STAGE_MIN_CORRECTION = 1e-60
 
 
 def as_positions(a: object, name: str) -> np.ndarray:
     """``a`` as a finite float64 vector, shape (n,); raises :class:`InputError` naming ``name``."""
+    if isinstance(a, str | bytes):  # (NumPy would read "0.5" as a number)
+        raise InputError(f"{name}: expected numbers, got {type(a).__name__} {a!r}")
     try:  # (a ragged list fails in either call)
         complex_ = np.iscomplexobj(a)
         arr = np.asarray(a, dtype=float) if not complex_ else None
@@ -61,6 +73,20 @@ def as_positions(a: object, name: str) -> np.ndarray:
             + (f" (and {bad.size - 1} more)" if bad.size > 1 else "")
         )
     return arr
+
+
+def as_readings(a: object, name: str) -> tuple[np.ndarray, bool]:
+    """``a`` as :func:`as_positions` gives it, a single number (a 0-d array too) as shape
+    (1,), and whether it was one: :func:`scalar_out` then gives the answer as one number."""
+    if isinstance(a, numbers.Real) or (isinstance(a, np.ndarray) and a.ndim == 0):
+        return as_positions(np.reshape(a, 1), name), True
+    return as_positions(a, name), False
+
+
+def scalar_out(value: np.ndarray, scalar: bool) -> np.ndarray:
+    """``value`` (1, ...) as its first entry where the readings were one number, else as
+    it is: numbers in, a number out (as ``np.interp`` does)."""
+    return value[0] if scalar else value
 
 
 def check_count(value: object, name: str, what: str, minimum: int) -> None:
@@ -144,6 +170,22 @@ def check_scale(x: np.ndarray, y: np.ndarray, names: tuple[str, str] = ("x", "y"
         raise InputError(
             f"{names[0]}: the positions span only {span:.3g}: too small a scale to compute "
             "with (variances in the unit squared underflow); use a smaller unit"
+        )
+
+
+def check_corrections(r: np.ndarray, name: str, mean: str) -> None:
+    """Refuse corrections ``r`` (n,) to fit hyperparameters to whose largest magnitude is
+    below :data:`STAGE_MIN_CORRECTION` but not 0: a scale whose variances underflow.
+
+    Raises:
+        InputError: Naming the targets, the prior mean and the remedy, a smaller unit.
+    """
+    big = float(np.max(np.abs(r), initial=0.0))
+    if 0.0 < big < STAGE_MIN_CORRECTION:
+        raise InputError(
+            f"{name}: the corrections (targets less the prior mean, {mean}) are at most "
+            f"{big:.3g} in magnitude: too small a scale to learn hyperparameters at "
+            "(variances in the unit squared underflow); use a smaller unit"
         )
 
 

@@ -32,7 +32,7 @@ from .planning import LowerStage, Plan, candidate_readings, check_interval, cove
 from .screening import LEVEL, Screening, Spread, repeats_screening, screen
 from .tabulate import predict_many
 from .text import arc_text, exclude_spec, range_text
-from .validation import as_positions, check_count
+from .validation import as_positions, as_readings, check_count
 from .verification import COVERAGE_FACTOR, Comparison, Verification, compare, verify
 
 __all__ = [
@@ -477,7 +477,8 @@ def unmeasured_arc(model: CalibrationModel) -> tuple[float, float] | None:
 
 
 def correct(model: CalibrationModel, readings: object) -> Correction:
-    """Correct device readings (m,) with the model's last stage.
+    """Correct device readings (m,) with the model's last stage (one number: each field
+    of the result one number).
 
     Readings outside the calibrated range are flagged; they are still corrected, by the
     GP's extrapolation (back to the prior mean, with a growing u) or the lookup table's
@@ -486,7 +487,7 @@ def correct(model: CalibrationModel, readings: object) -> Correction:
     the device readings left out (:func:`unmeasured_arc`) or where the reading is so large
     that a float64 holds it less finely than its u.
     """
-    r = as_positions(readings, "readings")
+    r, scalar = as_readings(readings, "readings")
     lo, hi = model.calibrated_range
     device = model.fitted.device
     with np.errstate(over="ignore"):  # squared distances of readings near 1e308 overflow
@@ -501,6 +502,8 @@ def correct(model: CalibrationModel, readings: object) -> Correction:
                 out |= in_arc(r, arc_width(arc, float(model.period)), float(model.period))
         else:
             out = (r < lo) | (r > hi)
+    if scalar:  # one number in: each field one number
+        return Correction(r[0], corrected[0], u[0], out[0])
     return Correction(r, corrected, u, out)
 
 
