@@ -119,7 +119,11 @@ def file_label(path: str | Path, what: str = "a file") -> str:
     pipe"`` where it is none (``/dev/fd/63`` of a process substitution, standard input):
     a review found titles naming "63"."""
     p = Path(path)
-    return p.name if p.is_file() else f"{what} read from a pipe"
+    if not p.is_file():
+        return f"{what} read from a pipe"
+    # a name's bytes that are not UTF-8 (a Latin-1 share's) are shown as U+FFFD: written
+    # as they came, they had stopped the UTF-8 output with a traceback
+    return p.name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
 
 
 def check_outputs(output: str | None, plot: str | None, inputs: Sequence[str | Path]) -> None:
@@ -646,6 +650,12 @@ def _fit_kwargs(args: argparse.Namespace) -> dict[str, object]:
         raise InputError(
             f"--kernel {args.kernel}: the lookup tables of --method lut have no kernel; "
             "leave --kernel out, or choose a GP method"
+        )
+    if args.kernel == "periodic" and args.method == "lut":  # (a review: it was ignored)
+        raise InputError(
+            "--kernel periodic: the lookup tables of --method lut do not wrap at the turn "
+            "(their model and compensation table would not be rotary); fit a rotary axis "
+            "with a GP method (--method bayes)"
         )
     return dict(
         method=args.method,

@@ -26,6 +26,11 @@ _START_INTERVALS = 16
 MAX_NODES = 2**16 + 1
 _FRACTIONS = np.array([0.25, 0.5, 0.75])
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+#: A table is taken where its error at the check points is within this fraction of the
+#: tolerance: the largest error may lie between them (a cubic error's extremes lie at
+#: 0.21 and 0.79 of an interval, 2.6 % above its values at 1/4 and 3/4; a review found
+#: a table built to the error at its check points 0.11 % over it in between).
+_MARGIN = 0.95
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,9 +104,10 @@ class CompensationTable:
                 outside = ~(np.abs(r) < self.limit)  # (also infinite and NaN readings)
                 if self.arc is not None:
                     outside |= in_arc(r, self.arc, self.period)
-            else:
-                t = (r - self.lo) / self.step
+            else:  # outside the range, the end's node (no division: it might overflow)
                 outside = ~((r >= self.lo) & (r <= self.hi))
+                t = np.where(outside, np.where(r > self.hi, self.n - 1, 0.0), r - self.lo)
+                t = np.where(outside, t, t / self.step)
         t = np.clip(np.nan_to_num(t, nan=0.0), 0.0, self.n - 1)
         i = np.minimum(t.astype(np.int64), self.n - 2)
         t = t - i
@@ -147,6 +153,8 @@ def compensation_table(
     if not (math.isfinite(tolerance) and tolerance > 0.0):
         raise ValueError(f"compensation_table: expected a tolerance > 0, got {tolerance!r}")
     extra = np.zeros(0) if extra is None else np.asarray(extra, dtype=float)
+    if period is not None:  # (a review: readings of -180 to 0 had not been checked)
+        extra = lo + np.mod(extra - lo, period)
     extra = extra[(extra >= lo) & (extra <= hi)]
     intervals = _START_INTERVALS
     while intervals + 1 <= max_nodes:
@@ -162,7 +170,7 @@ def compensation_table(
         )
         exact = corrected[nodes.size :]
         error = float(np.max(np.abs(table(checks)[0] - exact)))
-        if error <= tolerance:
+        if error <= _MARGIN * tolerance:
             u = None if std is None else np.asarray(std(nodes), dtype=float)
             return replace(table, u=u, error=error)
         intervals *= 2

@@ -412,7 +412,7 @@ def _check_inside(
         elif turn is not None:
             advice += (
                 "; or, for a rotary axis whose readings wrap at the full turn, fit with the "
-                f"periodic kernel (--kernel periodic --period {turn:.15g})"
+                f"periodic kernel (--kernel periodic --period {turn:.15g}, a GP method)"
             )
         n = int(stage.counts[i])
         mean = f" (the mean of this position's {n} rows)" if n > 1 else ""

@@ -48,6 +48,11 @@ FIT_CASES = {
         ["--method", "lut", "--kernel", "matern32"],
         ["--kernel matern32", "have no kernel"],
     ),
+    "rotary_lookup_tables": (  # a review: accepted, and the model was not rotary
+        GOOD,
+        ["--method", "lut", "--kernel", "periodic", "--period", "360"],
+        ["--kernel periodic", "do not wrap at the turn", "--method bayes"],
+    ),
     "period_too_short": (
         GOOD,
         ["--kernel", "periodic", "--period", "2"],
@@ -96,6 +101,7 @@ NO_FILE_NAMED = {
     "period_without_periodic",
     "mean_for_lookup_tables",
     "kernel_for_lookup_tables",
+    "rotary_lookup_tables",
     "negative_period",
     "export_bad_name",
     "export_bad_tolerance",

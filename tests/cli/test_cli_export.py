@@ -29,7 +29,9 @@ def test_header_and_csv_hold_the_library_table(linear_model, tmp_path):
     res = run_cascal("export", linear_model, "-o", tmp_path / "axis-1.h")
     assert res.returncode == 0, res.stderr
     text = (tmp_path / "axis-1.h").read_text()
-    assert "int axis_1_correct(double reading, double *corrected)" in text  # name from file
+    assert (
+        "int axis_1_correct(double axis_1_reading, double *axis_1_corrected)" in text
+    )  # name from file
     assert f"#define axis_1_N {table.n}" in text and linear_model.name in text
     assert repr(float(table.correction[7])) in text and f"{table.error:.3g}" in text
     # a review's case: the header named the content checksum inside the model file as "the
@@ -61,7 +63,7 @@ def test_standard_output_takes_the_format_from_the_option(linear_model, tmp_path
     assert "Compensation table written to /dev/stdout: " in res.stderr  # as correct says
     res = run_cascal("export", linear_model, "-o", "-", "--format", "h", "--name", "x1")
     assert res.returncode == 0, res.stderr
-    assert res.stdout.startswith("/*") and "int x1_correct(double reading" in res.stdout
+    assert res.stdout.startswith("/*") and "int x1_correct(double x1_reading" in res.stdout
     res = run_cascal("export", linear_model, "-o", "-")
     assert res.returncode == 2 and "add --format h or --format csv" in res.stderr
     res = run_cascal("export", linear_model, "-o", tmp_path / "t.csv", "--format", "h")
@@ -69,3 +71,17 @@ def test_standard_output_takes_the_format_from_the_option(linear_model, tmp_path
     assert "Traceback" not in res.stderr
     res = run_cascal("export", linear_model, "-o", tmp_path / "T.H")  # any case, as .csv
     assert res.returncode == 0 and "#define T_N " in (tmp_path / "T.H").read_text()
+
+
+def test_a_model_whose_file_name_is_not_utf8_is_exported(linear_model, tmp_path):
+    """A review's case: a model named with a Latin-1 byte stopped export with a traceback
+    (the name, in the header's comment, could not be written as UTF-8); it is shown with
+    U+FFFD there."""
+    import os
+
+    odd = os.fsdecode(bytes(tmp_path) + b"/mod\xffel.json")
+    with open(odd, "wb") as f:
+        f.write(linear_model.read_bytes())
+    res = run_cascal("export", odd, "-o", tmp_path / "t.h")
+    assert res.returncode == 0, res.stderr
+    assert "from mod\ufffdel.json," in (tmp_path / "t.h").read_text(encoding="utf-8")

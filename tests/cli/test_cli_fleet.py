@@ -281,7 +281,10 @@ def test_an_interrupt_cancels_the_devices_not_started(fleet, tmp_path):
         fit_devices(out / "testbed.json", devices, tmp_path / "models", options={"n_restarts": 2},
                     jobs=2, on_result=stop)  # fmt: skip
     written = list((tmp_path / "models").glob("*.json"))
-    assert 1 <= len(written) <= 3  # the first and those under way; none started after
+    # the first, the two under way, and the one the executor had queued for them (its call
+    # queue holds one task more than there are workers: seen on a loaded machine); none
+    # handed out after
+    assert 1 <= len(written) <= 4
 
 
 def _interrupted_fleet(fleet, tmp_path, gaps: tuple[float, ...], after: str = "[1/16", wait=None):

@@ -20,15 +20,34 @@ from ..errors import InputError
 __all__ = ["c_header", "c_identifier", "table_csv"]
 
 _IDENTIFIER = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+#: Beginnings of identifiers the C standard library reserves (C99 7.26: errno's, ctype's,
+#: string's, signal's, locale's, inttypes' and fenv's macros and functions).
+_RESERVED = re.compile(
+    r"E[0-9A-Z]|is[a-z]|to[a-z]|str[a-z]|mem[a-z]|wcs[a-z]|SIG_?[A-Z]|"
+    r"LC_[A-Z]|PRI[a-zX]|SCN[a-zX]|FE_[A-Z]"
+)
 
 
 def c_identifier(name: str) -> str:
     """``name`` checked as the prefix of C identifiers: a letter, then letters, digits and
-    underscores (a leading underscore would make reserved names)."""
+    underscores (a leading underscore would make reserved names), no two underscores
+    together or at its end (C++ reserves ``__``), and none of the beginnings the C library
+    reserves (``E1``, ``isx``, ``tox``, ``strx``, ``SIGX``, ...)."""
     if not _IDENTIFIER.fullmatch(name):
         raise InputError(
             f"--name: expected a C identifier starting with a letter (then letters, digits, "
             f"_), got {name!r}"
+        )
+    if "__" in name or name.endswith("_"):
+        raise InputError(
+            f"--name {name}: two underscores in a row (the identifiers add _N, _LO, ...: "
+            "a trailing _ makes them) are reserved in C++; choose another prefix"
+        )
+    reserved = _RESERVED.match(name)
+    if reserved:
+        raise InputError(
+            f"--name {name}: identifiers beginning {reserved.group()!r} are reserved by the C "
+            "standard library (C99 7.26); choose another prefix"
         )
     return name
 
@@ -56,17 +75,20 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
     # Quiet comparisons (isless, isgreaterequal, ...) and isfinite where a reading may be
     # NaN or infinite: an ordered comparison with NaN, or fmod of an infinity, would raise
     # the invalid-operation exception, which a controller may trap.
+    # Locals and parameters carry the prefix too: a firmware's own global ``status`` or
+    # ``t`` had been shadowed (an error with -Wshadow -Werror).
+    t, i, st, a, r, c = (f"{p}_{v}" for v in ("t", "i", "status", "a", "reading", "corrected"))
     if table.period is not None:
         limit = "HUGE_VAL" if table.limit == float("inf") else repr(table.limit)
         reduce = (
-            f"    double t = 0.0;\n"
+            f"    double {t} = 0.0;\n"
             f"    /* infinite, NaN, or so large that a double holds it less finely than u */\n"
-            f"    int status = isless(fabs(reading), {p}_LIMIT) ? 0 : 1;\n"
-            f"    if (isfinite(reading)) {{\n"
-            f"        t = fmod(reading - {p}_LO, {p}_PERIOD);\n"
-            f"        if (t < 0.0) t += {p}_PERIOD;\n"
-            f"        t /= {p}_STEP;\n"
-            f"        if (t > {p}_N - 1) t = {p}_N - 1;\n"
+            f"    int {st} = isless(fabs({r}), {p}_LIMIT) ? 0 : 1;\n"
+            f"    if (isfinite({r})) {{\n"
+            f"        {t} = fmod({r} - {p}_LO, {p}_PERIOD);\n"
+            f"        if ({t} < 0.0) {t} += {p}_PERIOD;\n"
+            f"        {t} /= {p}_STEP;\n"
+            f"        if ({t} > {p}_N - 1) {t} = {p}_N - 1;\n"
         )
         extra = (
             f"static const double {p}_PERIOD = {table.period!r};\n"
@@ -74,9 +96,9 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
         )
         if table.arc is not None:  # the part of the turn the device readings left out
             reduce += (
-                f"        double a = fmod(reading - {p}_ARC_START, {p}_PERIOD);\n"
-                f"        if (a < 0.0) a += {p}_PERIOD;\n"
-                f"        if (a > 0.0 && a < {p}_ARC_WIDTH) status = 1; /* never measured */\n"
+                f"        double {a} = fmod({r} - {p}_ARC_START, {p}_PERIOD);\n"
+                f"        if ({a} < 0.0) {a} += {p}_PERIOD;\n"
+                f"        if ({a} > 0.0 && {a} < {p}_ARC_WIDTH) {st} = 1; /* never measured */\n"
             )
             extra += (
                 f"static const double {p}_ARC_START = {table.arc[0]!r};\n"
@@ -84,15 +106,22 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
             )
         reduce += "    }\n"
     else:
+        # outside the range, no division: a huge reading's would overflow (a trap)
         reduce = (
-            f"    double t = (reading - {p}_LO) / {p}_STEP;\n"
-            f"    int status = islessequal({p}_LO, reading) && islessequal(reading, {p}_HI)"
-            " ? 0 : 1;\n"
-            f"    if (!isgreaterequal(t, 0.0)) t = 0.0; /* below the range, or NaN */\n"
-            f"    else if (t > {p}_N - 1) t = {p}_N - 1;\n"
+            f"    int {st} = islessequal({p}_LO, {r}) && islessequal({r}, {p}_HI) ? 0 : 1;\n"
+            f"    double {t} = isgreater({r}, {p}_HI) ? {p}_N - 1 : 0.0; /* below, or NaN */\n"
+            f"    if ({st} == 0) {t} = ({r} - {p}_LO) / {p}_STEP;\n"
+            f"    if ({t} > {p}_N - 1) {t} = {p}_N - 1;\n"
         )
         extra = f"static const double {p}_HI = {table.hi!r};\n"
-    include = "#include <math.h> /* fmod, fabs and the quiet comparisons: link with -lm */\n\n"
+    include = (
+        "#include <math.h> /* fmod, fabs and the quiet comparisons: link with -lm */\n"
+        "#include <float.h>\n\n"
+        "#if DBL_MANT_DIG != 53 || DBL_MAX_EXP != 1024\n"
+        '#error "this table needs IEEE 754 binary64 doubles: a 32-bit double loses its '
+        'corrections"\n'
+        "#endif\n\n"
+    )
     returns = (
         "Returns 0, or 1 for an infinite or NaN reading or one from LIMIT on\n * in "
         "magnitude (a double holds it less finely than the smallest u)."
@@ -128,13 +157,13 @@ static const double {p}_CORRECTION[{p}_N] = {{
 }};
 
 /* Corrected reading of a device reading. {returns} */
-static inline int {p}_correct(double reading, double *corrected)
+static inline int {p}_correct(double {r}, double *{c})
 {{
-{reduce}    long i = (long)t;
-    if (i > {p}_N - 2) i = {p}_N - 2;
-    t -= (double)i;
-    *corrected = reading + ({p}_CORRECTION[i] + t * ({p}_CORRECTION[i + 1] - {p}_CORRECTION[i]));
-    return status;
+{reduce}    long {i} = (long){t};
+    if ({i} > {p}_N - 2) {i} = {p}_N - 2;
+    {t} -= (double){i};
+    *{c} = {r} + ({p}_CORRECTION[{i}] + {t} * ({p}_CORRECTION[{i} + 1] - {p}_CORRECTION[{i}]));
+    return {st};
 }}
 
 """
