@@ -271,3 +271,69 @@ def test_corrections_too_small_to_learn_from_are_refused_by_name(noise):
     assert fit_gp(x, 1e-170 * c, mean="zero", hyperparameters=HP | {"variance": 1e-300})
     tiny, unit = fit_gp(x, 2e-60 * c, mean="zero", noise=noise), fit_gp(x, c, mean="zero")
     assert tiny.predict(0.3) / 2e-60 == pytest.approx(unit.predict(0.3), rel=1e-4)
+
+
+def test_a_periodic_kernel_object_needs_its_period_and_its_model_keeps_it(tmp_path):
+    """A review's cases: Periodic() took 2 pi on data in degrees; a cascade with a Periodic
+    object saved a model with no period, whose file was refused on loading; a NumPy
+    integer seed stopped save_model with a raw TypeError."""
+    from cascal import CalibrationModel, load_model, save_model
+
+    with pytest.raises(InputError, match="Periodic: give its period"):
+        Periodic(30.0, 1e-4)
+    rng = np.random.default_rng(0)
+    ang = np.sort(rng.uniform(0, 350, 30))
+    dev = np.sort(rng.uniform(0, 350, 40))
+    stages = [
+        (ang, ang + 0.01 * np.sin(np.radians(ang))),
+        (dev, dev + 0.02 * np.cos(np.radians(dev))),
+    ]
+    cascade = Cascade(
+        stages, kernel=Periodic(30.0, 1e-4, period=360.0), seed=np.int64(3), n_restarts=1
+    )
+    fitted = cascade.fit()
+    model = CalibrationModel.from_cascade(cascade, fitted, unit="deg")
+    assert model.periodic and model.period == 360.0 and type(model.seed) is int
+    save_model(tmp_path / "m.json", model)
+    back = load_model(tmp_path / "m.json")
+    assert back.period == 360.0 and back.fitted.correct(370.0) == fitted.correct(370.0)
+
+
+def test_matrix_results_take_one_number_as_one_position(data):
+    x, y = data
+    fit = fit_gp(x, y, hyperparameters=HP)
+    post = fit.posterior(0.5)  # (the review found a 0-d Posterior whose std failed)
+    assert post.mean.shape == (1,) and post.cov.shape == (1, 1)
+    np.testing.assert_allclose(post.std, fit.predict([0.5], return_std=True)[1], rtol=1e-9)
+    assert fit.posterior_factor(0.5)[1].shape[0] == 1
+    np.testing.assert_array_equal(
+        fit.cross_covariance(0.5, [0.5]), fit.cross_covariance([0.5], [0.5])
+    )
+    with pytest.raises(InputError, match="x: expected numbers, got NoneType"):
+        fit.predict(None)
+
+
+def test_array_level_verify_and_other_entry_points_refuse_what_they_cannot_mean():
+    """A review's cases: NaN statistics from NaN references, negative uncertainties taken,
+    raw TypeErrors and IndexErrors, and k=2.7 planned as 2 measurements."""
+    from cascal.planning import plan_reference
+    from cascal.simulation import simulate_trial
+    from cascal.verification import verify
+
+    r = np.linspace(0.0, 1.0, 5)
+    with pytest.raises(InputError, match="reference must be finite, got nan at index 4"):
+        verify(r, np.r_[r[:-1], np.nan], r, np.ones(5))
+    with pytest.raises(InputError, match="u_calibration must be >= 0"):
+        verify(r, r, r, -np.ones(5))
+    with pytest.raises(InputError, match="u_reading must be a number, got '1e-6'"):
+        verify(r, r, r, np.ones(5), u_reading="1e-6")
+    assert verify(r, r, r, np.full(5, np.nan)).summary()["rms_after"] == 0.0  # no u: a table
+    with pytest.raises(InputError, match="names: expected two names"):
+        fit_gp(r, r + 1e-3 * r**2, names="x")
+    with pytest.raises(InputError, match=r"rng: expected a numpy\.random\.Generator"):
+        simulate_trial(0)
+    trial = simulate_trial(np.random.default_rng(0))
+    testbed = fit_gp(*trial.d2, hyperparameters=HP)
+    for k in ("x", None, 2.7):
+        with pytest.raises(InputError, match="k: expected a whole number of measurements"):
+            plan_reference(testbed, np.linspace(0.0, 0.35, 20), k, where=trial.d1[1])

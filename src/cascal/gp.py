@@ -277,13 +277,14 @@ class FittedGP:
     def cross_covariance(self, a: object, b: object) -> np.ndarray:
         """Posterior covariance (m, p) of the latent map between positions ``a`` (m,) and
         ``b`` (p,): ``k(a, b) - k(a, X) (K + noise)^-1 k(X, b)``."""
-        xa, xb = as_positions(a, "a"), as_positions(b, "b")
+        xa, xb = as_readings(a, "a")[0], as_readings(b, "b")[0]  # (numbers: m or p = 1)
         k = self.kernel(self._turn(xa), self._turn(xb))
         return k - self.whitened(xa).T @ self.whitened(xb)
 
     def posterior(self, x: object) -> Posterior:
-        """Posterior mean (m,) and full covariance (m, m) of the latent map at ``x``."""
-        mean, cov = self.predict(x, return_cov=True)
+        """Posterior mean (m,) and full covariance (m, m) of the latent map at ``x`` (one
+        number: m = 1)."""
+        mean, cov = self.predict(as_readings(x, "x")[0], return_cov=True)
         return Posterior(mean, cov)
 
     def posterior_factor(self, x: object) -> tuple[np.ndarray, np.ndarray]:
@@ -298,7 +299,7 @@ class FittedGP:
         O(m^2 k) on top of ``predict(x, return_cov=True)``, instead of an O(m^3)
         eigendecomposition.
         """
-        xs = as_positions(x, "x")
+        xs = as_readings(x, "x")[0]
         mean, cov = self.predict(xs, return_cov=True)
         tol = np.finfo(float).eps * float(np.max(self.kernel.diag(xs), initial=0.0))
         c, piv, k, _ = lapack.dpstrf(cov, lower=1, tol=tol, overwrite_a=1)
@@ -424,6 +425,9 @@ def fit_gp(
 def _fit_gp(
     x, y, kernel, mean, noise, learn_noise, hyperparameters, n_restarts, seed, period, bounds, names
 ) -> FittedGP:
+    if not (isinstance(names, tuple | list) and len(names) == 2):  # (a review: "x" failed)
+        raise InputError(f"names: expected two names (of x and y), got {names!r}")
+    names = (str(names[0]), str(names[1]))
     xa, ya = check_pair(x, y, names)
     check_scale(xa, ya, names)
     n = xa.size

@@ -224,13 +224,16 @@ class Matern52(_Scaled):
 class Periodic(_Scaled):
     """Exp-sine-squared: variance * exp(-2 sin^2(pi (a - b) / period) / length_scale^2).
 
-    ``period`` is fixed (360 for degrees, 2*pi for radians) and not learned.
+    ``period`` is fixed (360 for degrees, 2*pi for radians) and not learned; it must be
+    given (a review: a default of 2*pi had fitted data in degrees as if in radians).
     """
 
-    period: float = 2 * np.pi
+    period: float | None = None
 
     def __post_init__(self) -> None:
         _Scaled.__post_init__(self)
+        if self.period is None:
+            raise InputError("Periodic: give its period (period=360 for degrees, 2*pi for radians)")
         _check_positive("period", self.period)
 
     def correlation(self, d, grad):

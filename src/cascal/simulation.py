@@ -13,6 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import InputError
+from .validation import check_count
+
 __all__ = [
     "COEF_VARIANCE",
     "FREQ_VARIANCE",
@@ -168,6 +171,12 @@ class Trial:
 
 def simulate_trial(rng: np.random.Generator, *, n1: int = 100) -> Trial:
     """Draw one trial of the paper's study from ``rng`` (maps first, then reading noise)."""
+    if not isinstance(rng, np.random.Generator):
+        raise InputError(
+            f"rng: expected a numpy.random.Generator (np.random.default_rng(seed)), got "
+            f"{type(rng).__name__}"
+        )
+    check_count(n1, "n1", "device points", 2)
     redraws = 0
     while True:
         testbed, device = draw_map(rng), draw_map(rng)

@@ -45,7 +45,7 @@ STAGE_MIN_CORRECTION = 1e-60
 
 def as_positions(a: object, name: str) -> np.ndarray:
     """``a`` as a finite float64 vector, shape (n,); raises :class:`InputError` naming ``name``."""
-    if isinstance(a, str | bytes):  # (NumPy would read "0.5" as a number)
+    if isinstance(a, str | bytes) or a is None:  # (NumPy would read "0.5" as a number)
         raise InputError(f"{name}: expected numbers, got {type(a).__name__} {a!r}")
     try:  # (a ragged list fails in either call)
         complex_ = np.iscomplexobj(a)

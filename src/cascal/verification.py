@@ -173,6 +173,19 @@ def verify(
     inside = np.ones(m, bool) if inside is None else np.asarray(inside, bool)
     if inside.shape != m:
         raise InputError(f"verify: inside has shape {inside.shape}, expected {m}")
+    for name, a in zip(("reading", "reference", "corrected"), arrays, strict=False):
+        bad = np.flatnonzero(~np.isfinite(a))
+        if bad.size:  # (a review: NaN statistics came back)
+            raise InputError(f"verify: {name} must be finite, got {a[bad[0]]} at index {bad[0]}")
+    bad = np.flatnonzero(arrays[3] < 0.0)  # (NaN: no uncertainty, a lookup table's)
+    if bad.size:
+        raise InputError(
+            f"verify: u_calibration must be >= 0 (or NaN for none), got {arrays[3][bad[0]]} "
+            f"at index {bad[0]}"
+        )
+    u_reading, u_reference, k = (_number(v, n) for v, n in ((u_reading, "u_reading"),
+                                 (u_reference, "u_reference"), (k, "k")))  # fmt: skip
+    mpe = None if mpe is None else _number(mpe, "mpe")
     for name, v in (("u_reading", u_reading), ("u_reference", u_reference)):
         if not (0.0 <= v < math.inf):
             raise InputError(f"verify: {name} must be a finite number >= 0, got {v!r}")
@@ -366,3 +379,13 @@ def _rms(v: np.ndarray) -> float:
     if not 0.0 < top < math.inf:
         return top
     return top * float(np.sqrt(np.mean((v / top) ** 2)))  # no overflow of v * v
+
+
+def _number(v: object, name: str) -> float:
+    """``v`` as a float; InputError naming ``name`` where it is not a number."""
+    if isinstance(v, str | bytes):
+        raise InputError(f"verify: {name} must be a number, got {v!r}")
+    try:
+        return float(v)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InputError(f"verify: {name} must be a number, got {v!r}") from None

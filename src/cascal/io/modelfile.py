@@ -115,8 +115,8 @@ class CalibrationModel:
             sources,
             unit,
             None if fitted.method == "lut" else kernel,
-            cascade.period,
-            cascade.seed,
+            _period(cascade),
+            None if cascade.seed is None else int(cascade.seed),  # (NumPy's: not JSON)
             int(cascade.n_restarts),
         )
 
@@ -737,3 +737,12 @@ def _version() -> str:
     from .._version import __version__
 
     return __version__
+
+
+def _period(cascade: Cascade) -> float | None:
+    """The period of a cascade's periodic kernel: given as ``period=`` with the name, or
+    carried by a :class:`~cascal.kernels.Periodic` object (a review: such a model had
+    been saved with none, and its file refused on loading)."""
+    if cascade.period is not None or not isinstance(cascade.kernel, Periodic):
+        return cascade.period
+    return float(cascade.kernel.period)
