@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import os
 import re
 import warnings
 
@@ -136,6 +137,32 @@ def test_fast_path_errors_are_located_exactly(tmp_path):
     with pytest.raises(InputError, match="finite") as exc:
         read_readings(p)
     assert exc.value.row == 4322
+
+
+def test_many_readings_from_a_pipe_take_the_fast_path_quietly(tmp_path):
+    """A review's case: over 5000 readings from a pipe (``<(cat big.csv)``) printed NumPy's
+    "input contained no data" warning: the fast path opened the path again, which a pipe
+    cannot give twice. It now parses the bytes read once."""
+    import threading
+
+    v = np.round(np.random.default_rng(1).normal(size=6000), 6)
+    text = "reading\n" + "\n".join(f"{x:.6f}" for x in v) + "\n"
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    writer = threading.Thread(target=lambda: fifo.write_text(text))
+    writer.start()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = read_readings(fifo)
+    writer.join()
+    np.testing.assert_array_equal(got.columns[0], v)
+
+
+def test_a_long_bad_cell_is_shortened_in_the_message(tmp_path):
+    p = _write(tmp_path, "reading\n0.5\n1" + "0" * 5000 + "x\n")
+    with pytest.raises(InputError, match=r"got '10+'\.\.\.'0+x' \(5002 characters\)") as exc:
+        read_readings(p)
+    assert len(str(exc.value)) < 200
 
 
 def test_read_table_reports_unreadable_file(tmp_path):

@@ -657,3 +657,11 @@ def test_a_byte_order_mark_loads_and_trailing_text_is_named(saved):
     saved.write_text(text + "x")
     with pytest.raises(ModelFileError, match=r"Extra data \(text after the model's closing"):
         load_model(saved)
+
+
+def test_a_model_file_claiming_a_period_its_device_kernel_lacks_is_refused(saved):
+    """A review's case: a linear model's file edited to say kernel "periodic", period 360
+    (its checksum recomputed) was read, and readings of other turns corrected as in range."""
+    _rewrite(saved, lambda doc: doc.update(kernel="periodic", period=360.0))
+    with pytest.raises(ModelFileError, match=r"a period of 360\.0, but the device stage's kernel"):
+        load_model(saved)

@@ -86,10 +86,15 @@ def check_output(
         raise InputError(f"{option} {p}: a link to {os.readlink(p)}, which does not exist")
     if not folder and p.is_dir():
         raise InputError(f"{option} {p}: expected a file name, got an existing folder")
+    if not folder and str(path).endswith(("/", os.sep)):  # (a review: "odir/" wrote a file)
+        raise InputError(f"{option} {path}: expected a file name, got a folder's (ending in /)")
+    # a path through a folder not made yet and then "..", as the writer will take it once it
+    # has made that folder (a review: -o nosuch/../ref.csv had replaced the input ref.csv)
+    lexical = Path(os.path.abspath(p))
     for other in inputs:
-        if p.exists() and same_file(p, other):
+        if (p.exists() and same_file(p, other)) or (lexical.exists() and same_file(lexical, other)):
             raise InputError(
-                f"{option} {p}: is an input of this command ({other}); not overwritten"
+                f"{option} {path}: is an input of this command ({other}); not overwritten"
             )
     try:
         mode = os.stat(p).st_mode  # through links
@@ -433,7 +438,13 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         raise InputError(f"--devices {folder}: {what}")
     if Path(args.output).resolve() == folder.resolve():  # its summary: a device file next time
         raise InputError(f"-o {args.output}: the same folder as --devices; give another")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() == ".csv" and p.is_file())
+    # a link to a file that is gone (a share not mounted) is a device that cannot be read,
+    # reported as such (a review: it had been left out without a word)
+    files = sorted(
+        p
+        for p in folder.iterdir()
+        if p.suffix.lower() == ".csv" and (p.is_file() or not p.exists())
+    )
     if not files:
         raise InputError(f"no .csv device files in folder {folder}")
     stems: dict[str, Path] = {}

@@ -432,3 +432,20 @@ def test_the_test_bed_and_the_devices_name_their_columns_apart(tmp_path):
                      *args, "--x-column", "third")  # fmt: skip
     assert res.returncode == 2 and "give it once (the test bed and every device)" in res.stderr
     assert "Traceback" not in res.stderr and not (tmp_path / "o2").exists()
+
+
+def test_a_device_file_that_is_a_dangling_link_is_reported(fleet, tmp_path):
+    """A review's case: a device file linked to a share not mounted was left out without a
+    word ("1 of 1 devices calibrated", exit 0); it is a device that could not be read."""
+    _, tb, folder, _, _ = fleet
+    devices = tmp_path / "devices"
+    devices.mkdir()
+    (devices / "a.csv").write_text((folder / "device01.csv").read_text())
+    (devices / "b.csv").symlink_to(tmp_path / "unmounted" / "b.csv")
+    res = run_cascal("fit-devices", tb, "--devices", devices, "-o", tmp_path / "out",
+                     "--jobs", "1", "--restarts", "1")  # fmt: skip
+    assert res.returncode == 1, res.stderr
+    assert "1 of 2 devices calibrated" in res.stdout
+    assert "skipped device b: " in res.stderr and "cannot read the file" in res.stderr
+    rows = (tmp_path / "out" / "fleet_summary.csv").read_text().splitlines()
+    assert rows[2].startswith("b,error,")

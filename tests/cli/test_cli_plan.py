@@ -173,6 +173,21 @@ def test_outputs_never_overwrite_inputs(linear_files, linear_model, tmp_path):
         res = run_cascal(*args)
         assert res.returncode == 2 and "is an input of this command" in res.stderr, args
         assert Path(args[-1]).read_bytes() == before
+    # a review's case: through a folder not made yet, then "..", the input had been replaced
+    # (the writer makes the folder, then renames onto the input)
+    for args in (
+        ("correct", linear_model, readings, "-o", f"{readings.parent}/nosuch/../{readings.name}"),
+        ("fit", *files, "-o", f"{files[0].parent}/nosuch/../{files[0].name}"),
+    ):
+        before = Path(args[1 if args[0] == "fit" else 2]).read_bytes()
+        res = run_cascal(*args)
+        assert res.returncode == 2 and "is an input of this command" in res.stderr, args
+        assert Path(args[1 if args[0] == "fit" else 2]).read_bytes() == before
+        assert not Path(args[-1]).parent.exists()
+    # and "-o odir/" for a folder not there wrote a file "odir"
+    res = run_cascal("correct", linear_model, readings, "-o", f"{tmp_path}/odir/")
+    assert res.returncode == 2 and "expected a file name, got a folder's" in res.stderr
+    assert not (tmp_path / "odir").exists()
 
 
 def test_targets_of_other_models(tmp_path):

@@ -537,7 +537,7 @@ def _fast(path: str | os.PathLike, raw: bytes, delim: str, width: int) -> np.nda
     """All columns parsed by NumPy, or None when anything is unusual (then parse exactly)."""
     try:
         values = np.loadtxt(
-            path,
+            io.BytesIO(raw),  # (the path again: a pipe's is empty, and NumPy warned of it)
             delimiter=delim,
             skiprows=1,
             ndmin=2,
@@ -726,10 +726,14 @@ def _number(cell: str, name: str, row: int, column: str) -> float:
         hint = ""
         if _DECIMAL_COMMA.fullmatch(s):
             hint = ": a decimal comma (or a thousands separator)? Write numbers with a point"
-        raise InputError(f"expected a number, got {s!r}{hint}", file=name, row=row, column=column)
+        raise InputError(
+            f"expected a number, got {_cell(s)}{hint}", file=name, row=row, column=column
+        )
     v = float(s)
     if not math.isfinite(v):
-        raise InputError(f"expected a finite number, got {s!r}", file=name, row=row, column=column)
+        raise InputError(
+            f"expected a finite number, got {_cell(s)}", file=name, row=row, column=column
+        )
     return v
 
 
@@ -750,3 +754,9 @@ def _is_value(cell: str) -> bool:
 
 def _is_number(s: str) -> bool:
     return _NUMBER.fullmatch(s.strip()) is not None
+
+
+def _cell(s: str) -> str:
+    """A cell's text for a message, a long one shortened (a review: a cell of 5000 digits
+    had made a message of 5 kB)."""
+    return repr(s) if len(s) <= 40 else f"{s[:24]!r}...{s[-8:]!r} ({len(s)} characters)"

@@ -29,7 +29,17 @@ from ..baselines import OffsetTable, fit_table
 from ..cascade import Cascade, FittedCascade, Stage
 from ..errors import CascalError, InputError, ModelFileError
 from ..gp import FittedGP, restore_bounds
-from ..kernels import Constant, Kernel, Matern32, Matern52, Periodic, Product, SquaredExp, Sum
+from ..kernels import (
+    Constant,
+    Kernel,
+    Matern32,
+    Matern52,
+    Periodic,
+    Product,
+    SquaredExp,
+    Sum,
+    common_period,
+)
 from ..means import Mean
 from ..noise import Dense, Diagonal, Noise, NoiseSum, as_noise
 from ..optimize import OptimResult, Start
@@ -398,6 +408,14 @@ def _from_dict(doc: dict) -> CalibrationModel:
                 f"stage {k}: a periodic kernel of period {m.kernel.period!r}, "
                 f"not the model's {period!r}"
             )
+    last = models[-1] if models else None
+    if period is not None and not (
+        isinstance(last, FittedGP) and common_period(last.kernel) == period
+    ):
+        raise ValueError(  # (a review: an edited "periodic" made a linear model's corrections
+            # of other turns in range)
+            f"a period of {period!r}, but the device stage's kernel does not repeat with it"
+        )
     tables = [isinstance(m, OffsetTable) for m in models]
     if (method == "lut" and not all(tables)) or (method != "lut" and any(tables)):
         raise ValueError(f"method {method!r} does not match the stage models")
