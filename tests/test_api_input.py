@@ -4,6 +4,7 @@ inside."""
 
 from __future__ import annotations
 
+import json
 import re
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 
 from cascal import Cascade, InputError, fit_gp, log_marginal_likelihood
 from cascal.baselines import OffsetTable
+from cascal.io.modelfile import _checksum
 from cascal.kernels import Periodic, SquaredExp
 from cascal.noise import Diagonal
 
@@ -323,8 +325,12 @@ def test_array_level_verify_and_other_entry_points_refuse_what_they_cannot_mean(
     r = np.linspace(0.0, 1.0, 5)
     with pytest.raises(InputError, match="reference must be finite, got nan at index 4"):
         verify(r, np.r_[r[:-1], np.nan], r, np.ones(5))
-    with pytest.raises(InputError, match="u_calibration must be >= 0"):
+    with pytest.raises(InputError, match="u_calibration must be finite and >= 0"):
         verify(r, r, r, -np.ones(5))
+    with pytest.raises(InputError, match="u_calibration must be finite and >= 0"):
+        verify(r, r, r, np.r_[np.ones(4), np.inf])
+    with pytest.raises(InputError, match="verify: expected numbers"):
+        verify(["a"], [1.0], [1.0], [0.1])
     with pytest.raises(InputError, match="u_reading must be a number, got '1e-6'"):
         verify(r, r, r, np.ones(5), u_reading="1e-6")
     assert verify(r, r, r, np.full(5, np.nan)).summary()["rms_after"] == 0.0  # no u: a table
@@ -337,3 +343,54 @@ def test_array_level_verify_and_other_entry_points_refuse_what_they_cannot_mean(
     for k in ("x", None, 2.7):
         with pytest.raises(InputError, match="k: expected a whole number of measurements"):
             plan_reference(testbed, np.linspace(0.0, 0.35, 20), k, where=trial.d1[1])
+
+
+def test_one_number_and_text_as_readings():
+    """A review of the scalar readings: True had been read as 1.0 while np.bool_ and a
+    Decimal met a message about shapes, and text in a list was read as numbers."""
+    from decimal import Decimal
+
+    from cascal.validation import as_readings
+
+    assert as_readings(Decimal("0.25"), "r")[0].tolist() == [0.25]
+    assert as_readings(np.float32(0.5), "r") == (np.array([0.5]), True)
+    for bad in (True, np.bool_(True)):
+        with pytest.raises(InputError, match="r: expected numbers, got a bool"):
+            as_readings(bad, "r")
+    for text in (["0.5", "1.0"], np.array(["0.5"]), ("0.5",)):
+        with pytest.raises(InputError, match="r: expected numbers, got text"):
+            as_readings(text, "r")
+    with pytest.raises(InputError, match="r: expected numbers, got object"):
+        as_readings(object(), "r")
+
+
+def test_from_cascade_writes_the_period_its_method_and_kernel_have(tmp_path):
+    """A review of the period's fix: a lut cascade given a periodic kernel wrote a period,
+    which the loader refused (0.4.10's such files too); a Periodic with a Constant, which
+    repeats whole, wrote none, so other turns were flagged."""
+    from cascal import CalibrationModel, Constant, load_model, save_model
+
+    rng = np.random.default_rng(0)
+    ang = np.sort(rng.uniform(0, 350, 30))
+    dev = np.sort(rng.uniform(0, 350, 40))
+    stages = [
+        (ang, ang + 0.01 * np.sin(np.radians(ang))),
+        (dev, dev + 0.02 * np.cos(np.radians(dev))),
+    ]
+    lut = Cascade(stages, "lut", kernel="periodic", period=360.0)
+    model = CalibrationModel.from_cascade(lut, lut.fit(), unit="deg")
+    assert model.period is None
+    save_model(tmp_path / "lut.json", model)
+    assert load_model(tmp_path / "lut.json").period is None
+    doc = json.loads((tmp_path / "lut.json").read_text())  # as 0.4.10 wrote it
+    doc["period"] = 360.0
+    body = {k: v for k, v in doc.items() if k != "checksum"}
+    doc["checksum"]["value"] = _checksum(body)
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    assert load_model(tmp_path / "old.json").period == 360.0
+    kernel = Periodic(30.0, 1e-4, period=360.0) + Constant(1e-6)
+    gp = Cascade(stages, kernel=kernel, n_restarts=1)
+    model = CalibrationModel.from_cascade(gp, gp.fit(), unit="deg")
+    assert model.period == 360.0
+    save_model(tmp_path / "sum.json", model)
+    assert load_model(tmp_path / "sum.json").period == 360.0

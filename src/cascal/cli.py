@@ -86,13 +86,15 @@ def check_output(
         raise InputError(f"{option} {p}: a link to {os.readlink(p)}, which does not exist")
     if not folder and p.is_dir():
         raise InputError(f"{option} {p}: expected a file name, got an existing folder")
-    if not folder and str(path).endswith(("/", os.sep)):  # (a review: "odir/" wrote a file)
-        raise InputError(f"{option} {path}: expected a file name, got a folder's (ending in /)")
-    # a path through a folder not made yet and then "..", as the writer will take it once it
-    # has made that folder (a review: -o nosuch/../ref.csv had replaced the input ref.csv)
-    lexical = Path(os.path.abspath(p))
-    for other in inputs:
-        if (p.exists() and same_file(p, other)) or (lexical.exists() and same_file(lexical, other)):
+    last = os.path.basename(str(path))
+    if not folder and (last in ("", ".", "..") or str(path).endswith(os.sep)):
+        raise InputError(  # (a review: "odir/" and "odir/." wrote a file "odir")
+            f"{option} {path}: expected a file name, got a folder's (ending in {last or '/'})"
+        )
+    for other in inputs:  # also a path through a folder not made yet and then "..", resolved
+        # as the writer will take it once it has made that folder, links and all (a review:
+        # -o nosuch/../ref.csv had replaced the input ref.csv)
+        if same_file(p, other):
             raise InputError(
                 f"{option} {path}: is an input of this command ({other}); not overwritten"
             )
@@ -124,11 +126,9 @@ def file_label(path: str | Path, what: str = "a file") -> str:
     pipe"`` where it is none (``/dev/fd/63`` of a process substitution, standard input):
     a review found titles naming "63"."""
     p = Path(path)
-    if not p.is_file():
-        return f"{what} read from a pipe"
-    # a name's bytes that are not UTF-8 (a Latin-1 share's) are shown as U+FFFD: written
-    # as they came, they had stopped the UTF-8 output with a traceback
-    return p.name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+    from .text import shown
+
+    return shown(p.name) if p.is_file() else f"{what} read from a pipe"
 
 
 def check_outputs(output: str | None, plot: str | None, inputs: Sequence[str | Path]) -> None:
@@ -1137,6 +1137,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cascal`` console script; returns the exit status."""
     from .pool import sigterm_as_interrupt
 
+    for stream in (sys.stdout, sys.stderr):  # a file name that is not UTF-8, printed: its
+        try:  # bytes escaped, not a UnicodeEncodeError (a review: info and fit stopped)
+            stream.reconfigure(errors="backslashreplace")  # type: ignore[union-attr]
+        except (AttributeError, ValueError):  # (a stream replaced by a test, say)
+            pass
     with sigterm_as_interrupt():  # SIGTERM as Ctrl-C: outputs left whole
         try:  # Ctrl-C while the subcommands' modules load (NumPy, SciPy: a few tenths of a s)
             return _main(argv)

@@ -21,7 +21,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from .workflow import compensation
 
     out = Path(args.output)
-    check_output(out, inputs=(args.model,))
+    check_output(args.output, inputs=(args.model,))  # (the text: Path drops a trailing /)
     if args.tolerance is not None and not (0 < args.tolerance < float("inf")):
         raise InputError(f"--tolerance: expected a positive number, got {args.tolerance!r}")
     fmt = _format(out, args.format)
@@ -93,10 +93,17 @@ def _format(out: Path, given: str | None) -> str:
 
 
 def _identifier(stem: str) -> str:
-    """A prefix of C identifiers from a file stem: other characters become ``_``, and one
-    that does not start with a letter gets ``table_`` in front."""
-    name = re.sub(r"[^A-Za-z0-9_]", "_", stem)
-    return name if name[:1].isalpha() else f"table_{name}"
+    """A prefix of C identifiers from a file stem: other characters become ``_`` (one for a
+    run of them, none at the end), and one that does not start with a letter, or starts
+    as names the C library reserves do, gets ``table_`` in front."""
+    from .errors import InputError
+    from .io.ctable import c_identifier
+
+    name = re.sub(r"[^A-Za-z0-9]+", "_", stem).strip("_") or "table"
+    try:
+        return c_identifier(name)
+    except InputError:
+        return f"table_{name}"
 
 
 def add_export_parser(sub) -> None:

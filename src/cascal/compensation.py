@@ -5,7 +5,8 @@ between the nodes of a uniform grid: one subtraction, one division, one truncati
 multiply-add per reading (and a ``fmod`` on a periodic table), no search and no
 exponentials. The grid spans the calibrated range (one period for a periodic model) with
 ``2^k + 1`` nodes, ``k >= 4``, the coarsest whose interpolation error, measured against the
-exact correction at check points, is within a tolerance. The check points of interval
+exact correction at check points, is within 0.95 of a tolerance (the error between them
+may be larger). The check points of interval
 ``j`` are at the fractions 1/4, 1/2, 3/4 and ``frac((j + 1) phi)`` of it (``phi`` the golden
 ratio: no periodic error whose period divides the spacing vanishes at all of them), and at
 given extra points (the data's readings, where a lookup-table model has its kinks).
@@ -136,8 +137,9 @@ def compensation_table(
     extra: np.ndarray | None = None,
     max_nodes: int = MAX_NODES,
 ) -> CompensationTable | None:
-    """The coarsest table of ``correct`` on ``[lo, hi]`` within ``tolerance``, or None if
-    more than ``max_nodes`` nodes would be needed.
+    """The coarsest table of ``correct`` on ``[lo, hi]`` within ``tolerance`` (within
+    :data:`_MARGIN` of it at the check points), or None if more than ``max_nodes`` nodes
+    would be needed.
 
     Args:
         correct: Corrected readings at readings (m,) -> (m,), the exact model.

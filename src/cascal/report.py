@@ -23,7 +23,7 @@ from .io.modelfile import CalibrationModel
 from .plots import figure_style, plot_change, plot_plan, plot_verification
 from .reportdata import CurveView, StageView, correction_curve, stage_views
 from .screening import LEVEL, Screening
-from .text import arc_text, caution_lines, hyperparameter_unit, range_text
+from .text import arc_text, caution_lines, hyperparameter_unit, range_text, shown
 from .verification import Comparison, Verification
 from .workflow import MeasurementPlan, arc_width, plan_measurements, summarize_device
 
@@ -271,7 +271,7 @@ def build_report(
             [
                 (
                     str(k),
-                    s.file,
+                    shown(s.file),
                     str(s.rows),
                     ", ".join(map(str, s.excluded)) or "none",
                     str(c.size),

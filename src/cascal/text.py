@@ -15,6 +15,7 @@ __all__ = [
     "range_ends",
     "range_text",
     "reading_in_range",
+    "shown",
     "turn_text",
     "understates_u",
 ]
@@ -187,3 +188,10 @@ def caution_lines(model) -> list[str]:
     files = [s.file for s in model.sources]
     lines = [finding_line(f, files[f.stage], model.unit) for f in fit_findings(model)]
     return [*lines, HOMOSCEDASTIC_U] if understates_u(model) else lines
+
+
+def shown(name: str) -> str:
+    """A file name as text to show: bytes of it that are not UTF-8 (a Latin-1 share's, held
+    by Python as surrogates) as U+FFFD. Written as they came, they had stopped UTF-8
+    outputs, terminals and figures with a traceback."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +46,13 @@ def as_positions(a: object, name: str) -> np.ndarray:
     """``a`` as a finite float64 vector, shape (n,); raises :class:`InputError` naming ``name``."""
     if isinstance(a, str | bytes) or a is None:  # (NumPy would read "0.5" as a number)
         raise InputError(f"{name}: expected numbers, got {type(a).__name__} {a!r}")
+    text = (
+        a.dtype.kind in "SU"
+        if isinstance(a, np.ndarray)
+        else (isinstance(a, list | tuple) and bool(a) and isinstance(a[0], str | bytes))
+    )
+    if text:  # (text, read as numbers by NumPy: a CSV column not converted, say)
+        raise InputError(f"{name}: expected numbers, got text (convert it first)")
     try:  # (a ragged list fails in either call)
         complex_ = np.iscomplexobj(a)
         arr = np.asarray(a, dtype=float) if not complex_ else None
@@ -78,9 +84,15 @@ def as_positions(a: object, name: str) -> np.ndarray:
 def as_readings(a: object, name: str) -> tuple[np.ndarray, bool]:
     """``a`` as :func:`as_positions` gives it, a single number (a 0-d array too) as shape
     (1,), and whether it was one: :func:`scalar_out` then gives the answer as one number."""
-    if isinstance(a, numbers.Real) or (isinstance(a, np.ndarray) and a.ndim == 0):
-        return as_positions(np.reshape(a, 1), name), True
-    return as_positions(a, name), False
+    if isinstance(a, bool | np.bool_):
+        raise InputError(f"{name}: expected numbers, got a bool ({a!r})")
+    if isinstance(a, str | bytes) or a is None or np.ndim(a) != 0 or np.iscomplexobj(a):
+        return as_positions(a, name), False
+    try:  # one number: a float, a NumPy number, a Decimal, a 0-d array
+        value = float(a)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: expected numbers, got {type(a).__name__} {a!r}") from None
+    return as_positions(np.array([value]), name), True
 
 
 def scalar_out(value: np.ndarray, scalar: bool) -> np.ndarray:

@@ -162,7 +162,13 @@ def verify(
         mpe: Maximum permissible error (> 0), or None.
         k: Coverage factor (> 0).
     """
-    arrays = [np.asarray(a, dtype=float) for a in (reading, reference, corrected, u_calibration)]
+    names = ("reading", "reference", "corrected", "u_calibration")
+    try:
+        arrays = [
+            np.asarray(a, dtype=float) for a in (reading, reference, corrected, u_calibration)
+        ]
+    except (TypeError, ValueError):  # (a review: a bare ValueError)
+        raise InputError(f"verify: expected numbers for {', '.join(names)}") from None
     m = arrays[0].shape
     if any(a.ndim != 1 or a.shape != m for a in arrays):
         shapes = ", ".join(str(a.shape) for a in arrays)
@@ -177,10 +183,11 @@ def verify(
         bad = np.flatnonzero(~np.isfinite(a))
         if bad.size:  # (a review: NaN statistics came back)
             raise InputError(f"verify: {name} must be finite, got {a[bad[0]]} at index {bad[0]}")
-    bad = np.flatnonzero(arrays[3] < 0.0)  # (NaN: no uncertainty, a lookup table's)
+    bad = np.flatnonzero((arrays[3] < 0.0) | np.isinf(arrays[3]))  # (NaN: none, a table's)
     if bad.size:
         raise InputError(
-            f"verify: u_calibration must be >= 0 (or NaN for none), got {arrays[3][bad[0]]} "
+            f"verify: u_calibration must be finite and >= 0 (or NaN for none), got "
+            f"{arrays[3][bad[0]]} "
             f"at index {bad[0]}"
         )
     u_reading, u_reference, k = (_number(v, n) for v, n in ((u_reading, "u_reading"),

@@ -31,8 +31,8 @@ from .io.modelfile import CalibrationModel, load_model, save_model
 from .planning import LowerStage, Plan, candidate_readings, check_interval, covered, plan_reference
 from .screening import LEVEL, Screening, Spread, repeats_screening, screen
 from .tabulate import predict_many
-from .text import arc_text, exclude_spec, range_text
-from .validation import as_positions, as_readings, check_count
+from .text import arc_text, exclude_spec, range_text, shown
+from .validation import as_readings, check_count
 from .verification import COVERAGE_FACTOR, Comparison, Verification, compare, verify
 
 __all__ = [
@@ -66,7 +66,7 @@ _PLAN_TARGET = 201
 
 @dataclass(frozen=True, slots=True)
 class Correction:
-    """Corrected device readings.
+    """Corrected device readings (of one number: each field one number, not shape (m,)).
 
     Attributes:
         reading: Device readings, shape (m,).
@@ -126,7 +126,7 @@ def fit_model(
     head = [] if prefix is None else list(prefix.data)
     if prefix is not None and len(head) != 1:
         raise InputError(f"prefix: expected a one-stage model, got {len(head)} stages")
-    all_stages = head + [s.stage(Path(s.source.file).name) for s in stages]
+    all_stages = head + [s.stage(shown(Path(s.source.file).name)) for s in stages]
     if not all_stages:
         raise InputError("expected at least one stage file")
     periodic = kernel == "periodic" and method != "lut"
@@ -675,8 +675,8 @@ def verify_model(
     reference's values there (m,). Points outside the calibrated range are corrected but
     left out of the statistics; see :func:`cascal.verification.verify` for the rest.
     """
-    c = correct(model, reading)
-    ref = as_positions(reference, "reference")  # (a NaN had made every figure NaN)
+    c = correct(model, as_readings(reading, "reading")[0])  # (one number: one check point)
+    ref = as_readings(reference, "reference")[0]  # (a NaN had made every figure NaN)
     if ref.shape != c.reading.shape:
         raise InputError(
             f"reading and reference: expected the same length, got {c.reading.size} and {ref.size}"

@@ -85,3 +85,44 @@ def test_a_model_whose_file_name_is_not_utf8_is_exported(linear_model, tmp_path)
     res = run_cascal("export", odd, "-o", tmp_path / "t.h")
     assert res.returncode == 0, res.stderr
     assert "from mod\ufffdel.json," in (tmp_path / "t.h").read_text(encoding="utf-8")
+
+
+def test_a_default_prefix_from_the_file_name_is_made_valid(linear_model, tmp_path):
+    """A review's case: -o tool_offsets.h, ENC1.h, axis-.h or x--y.h was refused after the
+    table was built, with a message about a --name never given; the prefix taken from the
+    file name is now made valid (runs of other characters as one _, none at the end,
+    table_ in front of a reserved beginning). An explicit --name is checked as given."""
+    for stem, prefix in (("tool_offsets", "tool_offsets"), ("ENC1", "table_ENC1"),
+                         ("axis-", "axis"), ("x--y", "x_y"), ("1st", "table_1st")):  # fmt: skip
+        res = run_cascal("export", linear_model, "-o", tmp_path / f"{stem}.h")
+        assert res.returncode == 0, res.stderr
+        text = (tmp_path / f"{stem}.h").read_text()
+        assert f"static inline int {prefix}_correct(double {prefix}_reading" in text, stem
+    res = run_cascal("export", linear_model, "-o", tmp_path / "e.h", "--name", "ENC1")
+    assert res.returncode == 2 and "--name ENC1: identifiers beginning 'EN'" in res.stderr
+    res = run_cascal("export", linear_model, "-o", f"{tmp_path}/exdir/", "--format", "h")
+    assert res.returncode == 2 and "expected a file name" in res.stderr
+    assert not (tmp_path / "exdir").exists()
+
+
+def test_file_names_that_are_not_utf8_reach_no_traceback(linear_files, tmp_path):
+    """A second review's cases: with a strict UTF-8 standard output, fit and info stopped
+    with a UnicodeEncodeError on Latin-1 file names, and report inside matplotlib in any
+    locale. Names are shown with U+FFFD in files and figures, escaped on a terminal."""
+    import os
+    import subprocess
+
+    from cli_helpers import _SCRIPT
+
+    files, _ = linear_files
+    odd = [os.fsencode(tmp_path) + b"/r\xe9f.csv", os.fsencode(tmp_path) + b"/d\xe9v.csv"]
+    for path, src in zip(odd, files, strict=True):
+        with open(path, "wb") as f:
+            f.write(src.read_bytes())
+    env = {**os.environ, "PYTHONIOENCODING": "utf-8"}
+    model = os.fsencode(tmp_path) + b"/m\xe9.json"
+    for args in ([b"fit", *odd, b"-o", model, b"--restarts", b"1"], [b"info", model],
+                 [b"report", model, b"-o", os.fsencode(tmp_path) + b"/r.html"]):  # fmt: skip
+        res = subprocess.run([os.fsencode(_SCRIPT), *args], capture_output=True, env=env)
+        assert res.returncode == 0 and b"Traceback" not in res.stderr, res.stderr[-400:]
+    assert "d\ufffdv.csv" in (tmp_path / "r.html").read_text(encoding="utf-8")

@@ -20,19 +20,18 @@ from ..errors import InputError
 __all__ = ["c_header", "c_identifier", "table_csv"]
 
 _IDENTIFIER = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
-#: Beginnings of identifiers the C standard library reserves (C99 7.26: errno's, ctype's,
-#: string's, signal's, locale's, inttypes' and fenv's macros and functions).
-_RESERVED = re.compile(
-    r"E[0-9A-Z]|is[a-z]|to[a-z]|str[a-z]|mem[a-z]|wcs[a-z]|SIG_?[A-Z]|"
-    r"LC_[A-Z]|PRI[a-zX]|SCN[a-zX]|FE_[A-Z]"
-)
+#: Beginnings of macro names the C standard library reserves where its headers are
+#: included (C99 7.26: errno's, signal's, locale's, inttypes' and fenv's), as the header's
+#: ``NAME_N`` is one. (Its functions' reserved beginnings, ``is``, ``to``, ``str``, ...,
+#: are reserved with external linkage only: the header's names are static.)
+_RESERVED = re.compile(r"E[0-9A-Z]|SIG_?[A-Z]|LC_[A-Z]|PRI[a-zX]|SCN[a-zX]|FE_[A-Z]")
 
 
 def c_identifier(name: str) -> str:
     """``name`` checked as the prefix of C identifiers: a letter, then letters, digits and
     underscores (a leading underscore would make reserved names), no two underscores
-    together or at its end (C++ reserves ``__``), and none of the beginnings the C library
-    reserves (``E1``, ``isx``, ``tox``, ``strx``, ``SIGX``, ...)."""
+    together or at its end (C++ reserves ``__``), and none of the beginnings of macro names
+    the C library reserves (``E1``, ``SIGX``, ``LC_X``, ...)."""
     if not _IDENTIFIER.fullmatch(name):
         raise InputError(
             f"--name: expected a C identifier starting with a letter (then letters, digits, "
@@ -59,8 +58,8 @@ def _numbers(values: np.ndarray, per_line: int = 4) -> str:
 
 
 def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
-    """A self-contained C99 header: the table and ``int NAME_correct(double reading,
-    double *corrected)``, which returns 0 inside the table (any reading, for a periodic
+    """A self-contained C99 header: the table and ``int NAME_correct(double NAME_reading,
+    double *NAME_corrected)``, which returns 0 inside the table (any reading, for a periodic
     one) and 1 outside it, where the nearest end's correction is held.
 
     Args:
@@ -77,7 +76,10 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
     # the invalid-operation exception, which a controller may trap.
     # Locals and parameters carry the prefix too: a firmware's own global ``status`` or
     # ``t`` had been shadowed (an error with -Wshadow -Werror).
-    t, i, st, a, r, c = (f"{p}_{v}" for v in ("t", "i", "status", "a", "reading", "corrected"))
+    # (not ``{p}_t``: a firmware's typedef of that name would be shadowed, and *_t names are
+    # reserved for types)
+    names = ("pos", "node", "status", "angle", "reading", "corrected")
+    t, i, st, a, r, c = (f"{p}_{v}" for v in names)
     if table.period is not None:
         limit = "HUGE_VAL" if table.limit == float("inf") else repr(table.limit)
         reduce = (

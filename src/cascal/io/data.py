@@ -175,7 +175,7 @@ def read_table(
     skip = frozenset(int(r) for r in exclude)
     values = rows = None
     if raw.count(b"\n") > _FAST_LINES and not unnamed:
-        values = _fast(path, raw, delim, len(header))
+        values = _fast(raw, delim, len(header))
         if values is not None:
             rows = np.arange(2, values.shape[0] + 2)
             _check_excluded(skip, set(range(2, values.shape[0] + 2)), name)
@@ -533,7 +533,7 @@ def _pick(
     return [next(it) if i is None else i for i in idx], passed
 
 
-def _fast(path: str | os.PathLike, raw: bytes, delim: str, width: int) -> np.ndarray | None:
+def _fast(raw: bytes, delim: str, width: int) -> np.ndarray | None:
     """All columns parsed by NumPy, or None when anything is unusual (then parse exactly)."""
     try:
         values = np.loadtxt(

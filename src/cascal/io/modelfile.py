@@ -125,7 +125,7 @@ class CalibrationModel:
             sources,
             unit,
             None if fitted.method == "lut" else kernel,
-            _period(cascade),
+            _period(cascade, fitted.method),
             None if cascade.seed is None else int(cascade.seed),  # (NumPy's: not JSON)
             int(cascade.n_restarts),
         )
@@ -409,9 +409,8 @@ def _from_dict(doc: dict) -> CalibrationModel:
                 f"not the model's {period!r}"
             )
     last = models[-1] if models else None
-    if period is not None and not (
-        isinstance(last, FittedGP) and common_period(last.kernel) == period
-    ):
+    repeats = isinstance(last, FittedGP) and common_period(last.kernel) == period
+    if period is not None and method != "lut" and not repeats:  # (0.4.10 wrote lut with one)
         raise ValueError(  # (a review: an edited "periodic" made a linear model's corrections
             # of other turns in range)
             f"a period of {period!r}, but the device stage's kernel does not repeat with it"
@@ -757,10 +756,14 @@ def _version() -> str:
     return __version__
 
 
-def _period(cascade: Cascade) -> float | None:
-    """The period of a cascade's periodic kernel: given as ``period=`` with the name, or
-    carried by a :class:`~cascal.kernels.Periodic` object (a review: such a model had
-    been saved with none, and its file refused on loading)."""
-    if cascade.period is not None or not isinstance(cascade.kernel, Periodic):
+def _period(cascade: Cascade, method: str) -> float | None:
+    """The period of a cascade's GP stages: given as ``period=`` with the name ``periodic``,
+    or that of a kernel object that repeats whole (a :class:`~cascal.kernels.Periodic`, with
+    constants too; a review: such a model had been saved with none, and its file refused
+    on loading); None for lookup tables, which do not wrap (as ``fit_model`` writes)."""
+    if method == "lut":
+        return None
+    if cascade.period is not None or isinstance(cascade.kernel, str):
         return cascade.period
-    return float(cascade.kernel.period)
+    period = common_period(cascade.kernel)
+    return None if period is None else float(period)
