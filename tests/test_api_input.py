@@ -394,3 +394,28 @@ def test_from_cascade_writes_the_period_its_method_and_kernel_have(tmp_path):
     assert model.period == 360.0
     save_model(tmp_path / "sum.json", model)
     assert load_model(tmp_path / "sum.json").period == 360.0
+
+
+def test_the_remaining_entry_points_refuse_odd_arguments_by_name(data):
+    """An API review's cases that had raised Python's or NumPy's own errors, or named what
+    the user never gave."""
+    from cascal.noise import Dense
+    from cascal.screening import screen
+
+    x, y = data
+    fit = fit_gp(x, y, hyperparameters=HP)
+    with pytest.raises(InputError, match=r"level: expected a probability"):
+        screen(fit, level="0.01")
+    table = Cascade([(x, y)], "lut").fit().models[0]
+    with pytest.raises(InputError, match="screen: expected a fitted GP stage, got OffsetTable"):
+        screen(table)
+    with pytest.raises(InputError, match="dense noise: expected a square"):
+        Dense([[1.0, 2.0], [3.0]])
+    with pytest.raises(InputError, match=r"a number is Diagonal\(number\)"):
+        Diagonal(1.0) + 1.0
+    with pytest.raises(
+        InputError, match=r"bounds: length_scale: expected 0 < lower <= upper, got \(1\.0, 0\.1\)"
+    ):
+        fit_gp(x, y, bounds={"length_scale": (1, 0.1)})
+    with pytest.raises(InputError, match="seed: expected a whole number of seeds >= 0"):
+        Cascade([(x, y)], seed=np.random.default_rng(0))

@@ -54,7 +54,7 @@ BAD = {
         r"x: duplicated position 0.2 at indices 1 and 3 "
         r"with contradicting (\w+ )?y 0\.2084.* and 0\.6014",
     ),
-    "text": (["a", "b", "c"], [1.0, 2.0, 3.0], r"x: expected numbers, got list"),
+    "text": (["a", "b", "c"], [1.0, 2.0, 3.0], r"x: expected numbers, got text"),
 }
 
 

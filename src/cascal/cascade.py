@@ -161,7 +161,7 @@ class Cascade:
             raise InputError("stages: expected at least one (x, y) pair")
         check_count(n_restarts, "n_restarts", "optimiser starts", 1)
         if seed is not None:
-            check_count(seed, "seed", "seed", 0)
+            check_count(seed, "seed", "seeds", 0)  # ("a whole number of seeds >= 0")
         make_kernel(kernel, period=period)  # refused here, not at fit(): name, period
         if isinstance(mean, str):
             make_mean(mean, np.zeros(1), np.zeros(1))

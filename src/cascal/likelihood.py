@@ -380,6 +380,8 @@ def search_bounds(
             lo, hi = (float(v) for v in lohi)
         except (TypeError, ValueError):
             raise InputError(f"bounds: {name}: expected (lower, upper), got {lohi!r}") from None
+        if not 0.0 < lo <= hi < math.inf:  # (a review: the message had shown every row)
+            raise InputError(f"bounds: {name}: expected 0 < lower <= upper, got ({lo!r}, {hi!r})")
         rows[name] = (lo, hi)
     if profile:
         (l_lo, l_hi) = rows["length_scale"]

@@ -108,7 +108,13 @@ class Dense(Noise):
     is_diagonal = False  # type: ignore[misc]
 
     def __post_init__(self) -> None:
-        C = np.array(self.cov, dtype=float)
+        try:
+            C = np.array(self.cov, dtype=float)
+        except (TypeError, ValueError):  # (a review: NumPy's own error for a ragged matrix)
+            raise InputError(
+                "dense noise: expected a square (n, n) matrix of numbers, got "
+                f"{type(self.cov).__name__}"
+            ) from None
         if C.ndim != 2 or C.shape[0] != C.shape[1]:
             raise InputError(f"dense noise: expected a square (n, n) matrix, got shape {C.shape}")
         if not np.all(np.isfinite(C)):
@@ -224,6 +230,14 @@ class NoiseSum(Noise):
     """Sum of independent noise sources."""
 
     parts: tuple[Noise, ...] = ()
+
+    def __post_init__(self) -> None:
+        odd = [p for p in self.parts if not isinstance(p, Noise)]
+        if odd:  # (a review: Diagonal(1.0) + 1.0 failed later, in the fit)
+            raise InputError(
+                f"noise: a sum of noise objects (Diagonal, Dense), got {type(odd[0]).__name__} "
+                f"{odd[0]!r} in it; a number is Diagonal(number)"
+            )
 
     @property
     def is_diagonal(self) -> bool:  # type: ignore[override]

@@ -18,6 +18,7 @@ ISO 5725-2), again by backward deletion.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,7 +107,8 @@ class Screening:
 
 
 def _check_level(level: float) -> None:
-    if not MIN_LEVEL <= level < 1.0:
+    number = isinstance(level, numbers.Real) and not isinstance(level, bool)
+    if not (number and MIN_LEVEL <= level < 1.0):
         raise InputError(f"level: expected a probability in [{MIN_LEVEL:g}, 1), got {level!r}")
 
 
@@ -152,6 +154,11 @@ def screen(gp: FittedGP, *, level: float = LEVEL, max_fraction: float = MAX_FRAC
         level: Family-wise false-alarm probability of each round (default 1 %).
         max_fraction: Take out at most this share of the points (at least one).
     """
+    if not isinstance(gp, FittedGP):  # (a review: an AttributeError for a lookup table)
+        raise InputError(
+            f"screen: expected a fitted GP stage, got {type(gp).__name__} (a lookup table has "
+            "no noise model to screen against)"
+        )
     _check_level(level)
     n = gp.x.size
     residual, std = loo_residuals(gp)
