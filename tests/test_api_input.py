@@ -19,6 +19,17 @@ from cascal.noise import Diagonal
 HP = {"length_scale": 0.3, "variance": 1e-4, "noise_variance": 1e-8}
 
 
+def _rotary_stages() -> list[tuple[np.ndarray, np.ndarray]]:
+    """A rotary table's two stages over 0 to 350 degrees (a reference and a device)."""
+    rng = np.random.default_rng(0)
+    ang = np.sort(rng.uniform(0, 350, 30))
+    dev = np.sort(rng.uniform(0, 350, 40))
+    return [
+        (ang, ang + 0.01 * np.sin(np.radians(ang))),
+        (dev, dev + 0.02 * np.cos(np.radians(dev))),
+    ]
+
+
 @pytest.fixture
 def data():
     x = np.linspace(0.0, 1.0, 12)
@@ -283,13 +294,7 @@ def test_a_periodic_kernel_object_needs_its_period_and_its_model_keeps_it(tmp_pa
 
     with pytest.raises(InputError, match="Periodic: give its period"):
         Periodic(30.0, 1e-4)
-    rng = np.random.default_rng(0)
-    ang = np.sort(rng.uniform(0, 350, 30))
-    dev = np.sort(rng.uniform(0, 350, 40))
-    stages = [
-        (ang, ang + 0.01 * np.sin(np.radians(ang))),
-        (dev, dev + 0.02 * np.cos(np.radians(dev))),
-    ]
+    stages = _rotary_stages()
     cascade = Cascade(
         stages, kernel=Periodic(30.0, 1e-4, period=360.0), seed=np.int64(3), n_restarts=1
     )
@@ -370,13 +375,7 @@ def test_from_cascade_writes_the_period_its_method_and_kernel_have(tmp_path):
     repeats whole, wrote none, so other turns were flagged."""
     from cascal import CalibrationModel, Constant, load_model, save_model
 
-    rng = np.random.default_rng(0)
-    ang = np.sort(rng.uniform(0, 350, 30))
-    dev = np.sort(rng.uniform(0, 350, 40))
-    stages = [
-        (ang, ang + 0.01 * np.sin(np.radians(ang))),
-        (dev, dev + 0.02 * np.cos(np.radians(dev))),
-    ]
+    stages = _rotary_stages()
     lut = Cascade(stages, "lut", kernel="periodic", period=360.0)
     model = CalibrationModel.from_cascade(lut, lut.fit(), unit="deg")
     assert model.period is None
