@@ -418,3 +418,10 @@ def test_the_remaining_entry_points_refuse_odd_arguments_by_name(data):
         fit_gp(x, y, bounds={"length_scale": (1, 0.1)})
     with pytest.raises(InputError, match="seed: expected a whole number of seeds >= 0"):
         Cascade([(x, y)], seed=np.random.default_rng(0))
+
+
+def test_a_ragged_reading_list_is_named_not_numpys_error():
+    from cascal.validation import as_readings
+
+    with pytest.raises(InputError, match="r: expected numbers, got list"):
+        as_readings([[1.0], [1.0, 2.0]], "r")

@@ -125,9 +125,9 @@ def file_label(path: str | Path, what: str = "a file") -> str:
     """The name of the input file ``path`` for a title or header, or ``"<what> read from a
     pipe"`` where it is none (``/dev/fd/63`` of a process substitution, standard input):
     a review found titles naming "63"."""
-    p = Path(path)
     from .text import shown
 
+    p = Path(path)
     return shown(p.name) if p.is_file() else f"{what} read from a pipe"
 
 

@@ -86,7 +86,11 @@ def as_readings(a: object, name: str) -> tuple[np.ndarray, bool]:
     (1,), and whether it was one: :func:`scalar_out` then gives the answer as one number."""
     if isinstance(a, bool | np.bool_):
         raise InputError(f"{name}: expected numbers, got a bool ({a!r})")
-    if isinstance(a, str | bytes) or a is None or np.ndim(a) != 0 or np.iscomplexobj(a):
+    try:
+        one = not (isinstance(a, str | bytes) or a is None) and np.ndim(a) == 0
+    except ValueError:  # (a ragged list: as_positions names it)
+        one = False
+    if not one or np.iscomplexobj(a):
         return as_positions(a, name), False
     try:  # one number: a float, a NumPy number, a Decimal, a 0-d array
         value = float(a)  # type: ignore[arg-type]

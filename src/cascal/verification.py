@@ -179,7 +179,7 @@ def verify(
     inside = np.ones(m, bool) if inside is None else np.asarray(inside, bool)
     if inside.shape != m:
         raise InputError(f"verify: inside has shape {inside.shape}, expected {m}")
-    for name, a in zip(("reading", "reference", "corrected"), arrays, strict=False):
+    for name, a in zip(names[:3], arrays[:3], strict=True):
         bad = np.flatnonzero(~np.isfinite(a))
         if bad.size:  # (a review: NaN statistics came back)
             raise InputError(f"verify: {name} must be finite, got {a[bad[0]]} at index {bad[0]}")

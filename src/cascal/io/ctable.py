@@ -74,10 +74,9 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
     # Quiet comparisons (isless, isgreaterequal, ...) and isfinite where a reading may be
     # NaN or infinite: an ordered comparison with NaN, or fmod of an infinity, would raise
     # the invalid-operation exception, which a controller may trap.
-    # Locals and parameters carry the prefix too: a firmware's own global ``status`` or
-    # ``t`` had been shadowed (an error with -Wshadow -Werror).
-    # (not ``{p}_t``: a firmware's typedef of that name would be shadowed, and *_t names are
-    # reserved for types)
+    # Locals and parameters carry the prefix too (a firmware's own global ``status`` or ``t``
+    # had been shadowed: an error with -Wshadow -Werror), and none ends in _t (a typedef
+    # ``NAME_t`` would be shadowed; such names are the types').
     names = ("pos", "node", "status", "angle", "reading", "corrected")
     t, i, st, a, r, c = (f"{p}_{v}" for v in names)
     if table.period is not None:
