@@ -362,7 +362,8 @@ def test_one_number_and_text_as_readings():
     for bad in (True, np.bool_(True)):
         with pytest.raises(InputError, match="r: expected numbers, got a bool"):
             as_readings(bad, "r")
-    for text in (["0.5", "1.0"], np.array(["0.5"]), ("0.5",)):
+    for text in (["0.5", "1.0"], np.array(["0.5"]), ("0.5",), np.array(["0.5"], dtype=object),
+                 np.array("0.5")):  # fmt: skip
         with pytest.raises(InputError, match="r: expected numbers, got text"):
             as_readings(text, "r")
     with pytest.raises(InputError, match="r: expected numbers, got object"):
@@ -386,7 +387,7 @@ def test_from_cascade_writes_the_period_its_method_and_kernel_have(tmp_path):
     body = {k: v for k, v in doc.items() if k != "checksum"}
     doc["checksum"]["value"] = _checksum(body)
     (tmp_path / "old.json").write_text(json.dumps(doc))
-    assert load_model(tmp_path / "old.json").period == 360.0
+    assert load_model(tmp_path / "old.json").period is None  # (a review: other turns in range)
     kernel = Periodic(30.0, 1e-4, period=360.0) + Constant(1e-6)
     gp = Cascade(stages, kernel=kernel, n_restarts=1)
     model = CalibrationModel.from_cascade(gp, gp.fit(), unit="deg")

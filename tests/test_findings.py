@@ -188,28 +188,3 @@ def test_a_stage_outside_the_range_above_names_units_and_turns(tmp_path):
         fit_model([table, enc], n_restarts=1, unit="mm")
     with pytest.raises(InputError, match=r"--period 6.28318530717959, a GP"):
         fit_model([table, enc], n_restarts=1, unit="rad")  # (the numbers do not matter)
-
-
-def test_a_known_noise_below_the_factors_round_off_gets_the_noiseless_check():
-    """An API review's case: a known noise of 1e-16 of the kernel's variance, with two
-    positions 4e-7 apart, bounds no pivot above the factor's round-off (condition 1e18): the
-    factor had been taken as it came, no jitter, and u was 0 at a reading 10 % of the span
-    beyond the data where the exact posterior has 13. Such a noise now gets the noiseless
-    factor's check: jitter recorded, and every posterior variance positive."""
-    from cascal import Matern32, SquaredExp, fit_gp
-
-    rng = np.random.default_rng(4873)
-    u = np.sort(rng.uniform(0, 1, 27))
-    u[11] = u[10] + 1e-9
-    x = 437.15 * u
-    y = x + 34.72 * np.sin(2 * np.pi * 5.6936 * u)
-    hp = {"k1_length_scale": 31.8, "k1_variance": 4466.0, "k2_length_scale": 381.7,
-          "k2_variance": 7.7e-4}  # fmt: skip
-    kernel = SquaredExp(1.0, 1.0) + Matern32(1.0, 1.0)
-    fit = fit_gp(x, y, noise=np.full(27, 1.2e-13), hyperparameters=hp, kernel=kernel)
-    assert fit.jitter > 0.0
-    q = np.linspace(-100.0, 540.0, 400)
-    assert np.diag(fit.predict(q, return_cov=True)[1]).min() > 0.0
-    # a noise the factor resolves is taken as it is (a review of 0.3: jitter there had cost
-    # optima at the noise floor)
-    assert fit_gp(x, y, noise=np.full(27, 1e-3), hyperparameters=hp, kernel=kernel).jitter == 0.0

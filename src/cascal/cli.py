@@ -214,7 +214,7 @@ def same_file(a: str | Path, b: str | Path) -> bool:
         if pa.exists() and pb.exists():
             return pa.is_file() and pb.is_file() and os.path.samefile(pa, pb)
         return pa.resolve() == pb.resolve()
-    except OSError:
+    except (OSError, RuntimeError):  # (RuntimeError: a loop of links, on Python 3.11)
         return False
 
 
@@ -1138,10 +1138,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .pool import sigterm_as_interrupt
 
     for stream in (sys.stdout, sys.stderr):  # a file name that is not UTF-8, printed: its
-        try:  # bytes escaped, not a UnicodeEncodeError (a review: info and fit stopped)
-            stream.reconfigure(errors="backslashreplace")  # type: ignore[union-attr]
-        except (AttributeError, ValueError):  # (a stream replaced by a test, say)
-            pass
+        # bytes escaped, not a UnicodeEncodeError (a review: info and fit stopped), where
+        # the stream is strict (under the C locale or PYTHONUTF8, it writes them back as
+        # they came)
+        if getattr(stream, "errors", None) == "strict" and hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
     with sigterm_as_interrupt():  # SIGTERM as Ctrl-C: outputs left whole
         try:  # Ctrl-C while the subcommands' modules load (NumPy, SciPy: a few tenths of a s)
             return _main(argv)

@@ -972,8 +972,9 @@ def _condition(x, y, kern, m, known, sn2, optimization, factor=None) -> FittedGP
         if known is not None:
             Kt = known.add_to(Kt)
         Kt.flat[:: n + 1] += sn2
-        bare = noiseless(known, n, sn2, float(np.trace(Kt)))
-        L, jitter = linalg.cholesky(Kt, what="target covariance", noiseless=bare)
+        L, jitter = linalg.cholesky(
+            Kt, what="target covariance", noiseless=noiseless(known, n, sn2)
+        )
         alpha = linalg.cho_solve(L, r)
     lml = -0.5 * float(r @ alpha) - 0.5 * linalg.logdet(L) - 0.5 * n * _LOG2PI
     return FittedGP(x, y, kern, m, known, sn2, L, alpha, jitter, lml, optimization)

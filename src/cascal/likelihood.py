@@ -30,20 +30,14 @@ _LOG2PI = np.log(2.0 * np.pi)
 RATIO_MAX = 1e7
 
 
-def noiseless(known: Noise | None, n: int, white: float, trace: float) -> bool:
-    """Whether a target covariance of n points and trace ``trace``, with the known noise
-    ``known`` and a white noise of variance ``white``, may hold no noise its factorisation
-    can resolve in some direction: no white noise and a known noise whose smallest
-    eigenvalue (:meth:`cascal.noise.Noise.floor`) may be 0 or is below the factor's
-    round-off, ``eps trace``: none at some point of its diagonal (a kernel matrix alone
-    there), a singular dense noise (a shared offset of rank 1, whatever its diagonal), or
-    variances of 1e-17 of the kernel's (a review: no jitter, and u = 0 where the exact
-    posterior had 13). Its Cholesky factor is then checked for pivots of round-off
-    (:func:`cascal.linalg.pivots_ok`)."""
-    return white == 0.0 and (known is None or known.floor(n) <= _EPS * trace)
-
-
-_EPS = float(np.finfo(float).eps)
+def noiseless(known: Noise | None, n: int, white: float) -> bool:
+    """Whether a target covariance of n points with the known noise ``known`` and a white
+    noise of variance ``white`` may hold no noise in some direction: no white noise and a
+    known noise whose smallest eigenvalue may be 0 (:meth:`cascal.noise.Noise.floor`):
+    none at some point of its diagonal (a kernel matrix alone there), or a singular dense
+    noise (a shared offset of rank 1, whatever its diagonal). Its Cholesky factor is then
+    checked for pivots of round-off (:func:`cascal.linalg.pivots_ok`)."""
+    return white == 0.0 and (known is None or known.floor(n) <= 0.0)
 
 
 class Objective:
@@ -73,10 +67,8 @@ class Objective:
         self.profile = bool(profile)
         self._exact = True
         self.jitter = 0.0  # added to the diagonal in the latest factorisation
-        # no noise the factor resolves on the diagonal (a kernel matrix alone, or a known
-        # noise below its round-off): round-off pivots count as failed. A learned noise
-        # is never 0; the known one's floor, once.
-        self._floor = None if learn_noise else (0.0 if known is None else known.floor(self.n))
+        # no noise on the diagonal (a kernel matrix alone): round-off pivots count as failed
+        self._noiseless = noiseless(known, self.n, 1.0 if learn_noise else 0.0)
         self._last: tuple | None = None  # (theta bytes, L, Kt^-1 r, r^T A^-1 r or None)
         if self.profile and not (isinstance(kernel, _Scaled) and known is None and learn_noise):
             raise ValueError("profiling needs a scaled kernel, no known noise, learned noise")
@@ -94,11 +86,10 @@ class Objective:
 
     def _factor(self, Kt: np.ndarray) -> np.ndarray:
         L, info = lapack.dpotrf(Kt, lower=1, clean=1)
-        bare = self._floor is not None and self._floor <= _EPS * float(np.trace(Kt))
-        self._exact = info == 0 and (not bare or linalg.pivots_ok(L, Kt))
+        self._exact = info == 0 and (not self._noiseless or linalg.pivots_ok(L, Kt))
         self.jitter = 0.0
         if not self._exact:
-            L, self.jitter = linalg.cholesky(Kt, noiseless=bare)
+            L, self.jitter = linalg.cholesky(Kt, noiseless=self._noiseless)
         return L
 
     def factor_at(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

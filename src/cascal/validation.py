@@ -46,11 +46,11 @@ def as_positions(a: object, name: str) -> np.ndarray:
     """``a`` as a finite float64 vector, shape (n,); raises :class:`InputError` naming ``name``."""
     if isinstance(a, str | bytes) or a is None:  # (NumPy would read "0.5" as a number)
         raise InputError(f"{name}: expected numbers, got {type(a).__name__} {a!r}")
-    text = (
-        a.dtype.kind in "SU"
-        if isinstance(a, np.ndarray)
-        else (isinstance(a, list | tuple) and bool(a) and isinstance(a[0], str | bytes))
-    )
+    if isinstance(a, np.ndarray):  # (object arrays: an unconverted pandas column's)
+        first = a.flat[0] if a.size else None
+        text = a.dtype.kind in "SU" or (a.dtype.kind == "O" and isinstance(first, str | bytes))
+    else:
+        text = isinstance(a, list | tuple) and bool(a) and isinstance(a[0], str | bytes)
     if text:  # (text, read as numbers by NumPy: a CSV column not converted, say)
         raise InputError(f"{name}: expected numbers, got text (convert it first)")
     try:  # (a ragged list fails in either call)
@@ -86,8 +86,9 @@ def as_readings(a: object, name: str) -> tuple[np.ndarray, bool]:
     (1,), and whether it was one: :func:`scalar_out` then gives the answer as one number."""
     if isinstance(a, bool | np.bool_):
         raise InputError(f"{name}: expected numbers, got a bool ({a!r})")
-    try:
-        one = not (isinstance(a, str | bytes) or a is None) and np.ndim(a) == 0
+    try:  # (text, also a 0-d array of it, goes to as_positions, which names it)
+        textual = isinstance(a, np.ndarray) and a.dtype.kind in "SUO"
+        one = not (isinstance(a, str | bytes) or a is None or textual) and np.ndim(a) == 0
     except ValueError:  # (a ragged list: as_positions names it)
         one = False
     if not one or np.iscomplexobj(a):

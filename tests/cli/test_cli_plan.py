@@ -200,6 +200,9 @@ def test_outputs_never_overwrite_inputs(linear_files, linear_model, tmp_path):
     res = run_cascal("correct", linear_model, rd, "-o", f"{work}/linkdir/nosuch/../../rd.csv")
     assert res.returncode == 2 and "is an input of this command" in res.stderr
     assert rd.read_text() == readings.read_text()
+    (work / "loop").symlink_to(work / "loop")  # (resolve() raised RuntimeError: a traceback)
+    res = run_cascal("correct", linear_model, rd, "-o", work / "loop")
+    assert "Traceback" not in res.stderr
     local = work / "rd.csv"
     local.write_text(readings.read_text())
     res = run_cascal("correct", linear_model, local, "-o", f"{work}/linkdir/../rd.csv")

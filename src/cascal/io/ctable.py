@@ -22,8 +22,9 @@ __all__ = ["c_header", "c_identifier", "table_csv"]
 _IDENTIFIER = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 #: Beginnings of macro names the C standard library reserves where its headers are
 #: included (C99 7.26: errno's, signal's, locale's, inttypes' and fenv's), as the header's
-#: ``NAME_N`` is one. (Its functions' reserved beginnings, ``is``, ``to``, ``str``, ...,
-#: are reserved with external linkage only: the header's names are static.)
+#: ``NAME_N`` is one. (Its functions' beginnings, ``is``, ``to``, ``str``, ..., are
+#: reserved with external linkage, and at file scope only where ctype.h or string.h is
+#: included, which the header does not do: refusing them refused ordinary names.)
 _RESERVED = re.compile(r"E[0-9A-Z]|SIG_?[A-Z]|LC_[A-Z]|PRI[a-zX]|SCN[a-zX]|FE_[A-Z]")
 
 

@@ -400,6 +400,8 @@ def _from_dict(doc: dict) -> CalibrationModel:
     method = doc["method"]
     _check_unit(doc["unit"], ValueError)
     name, period = doc["kernel"], doc["period"]
+    if doc["method"] == "lut":  # lookup tables do not wrap (0.4.10 wrote some with a period)
+        period = None
     if name in _NAMED and (name == "periodic") != (period is not None):
         raise ValueError(f"kernel {name!r} with period {period!r}")
     for k, m in enumerate(models):  # (a prefix's stages may have another kernel)
@@ -410,7 +412,7 @@ def _from_dict(doc: dict) -> CalibrationModel:
             )
     last = models[-1] if models else None
     repeats = isinstance(last, FittedGP) and common_period(last.kernel) == period
-    if period is not None and method != "lut" and not repeats:  # (0.4.10 wrote lut with one)
+    if period is not None and not repeats:
         raise ValueError(  # (a review: an edited "periodic" made a linear model's corrections
             # of other turns in range)
             f"a period of {period!r}, but the device stage's kernel does not repeat with it"
@@ -440,7 +442,7 @@ def _from_dict(doc: dict) -> CalibrationModel:
     )
     return CalibrationModel(
         fitted, tuple(data), tuple(counts), sources, doc["unit"], doc["kernel"],
-        doc["period"], prov["seed"], prov["n_restarts"], prov["created"], prov["cascal_version"],
+        period, prov["seed"], prov["n_restarts"], prov["created"], prov["cascal_version"],
     )  # fmt: skip
 
 
