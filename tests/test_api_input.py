@@ -50,6 +50,13 @@ def test_a_fit_keeps_its_own_read_only_arrays(data):
     noise = Diagonal(v)
     v[:] = -1.0
     assert np.all(noise.variance == 1e-8)
+    from cascal.noise import Dense  # (a review: its covariance stayed writeable)
+
+    cov = np.eye(3)
+    for dense in (Dense(cov), Dense.from_factor(cov), Dense.repaired(cov)):
+        with pytest.raises(ValueError, match="read-only"):
+            dense.cov[0, 0] = 5.0
+    assert cov.flags.writeable and cov[0, 0] == 1.0
 
 
 def test_a_fitted_cascade_keeps_its_range_when_the_inputs_change():

@@ -141,6 +141,7 @@ class Dense(Noise):
         if np.any(neg):
             C = (V * np.where(neg, 0.0, w)) @ V.T
             C = 0.5 * (C + C.T)
+        C.flags.writeable = False  # its own copy, read-only as a fit's arrays (a review)
         object.__setattr__(self, "cov", C)
         object.__setattr__(self, "_factor", _low_rank(np.where(neg, 0.0, w), V))
         object.__setattr__(self, "n_clipped", int(np.count_nonzero(neg)))
@@ -164,6 +165,7 @@ class Dense(Noise):
         fields = cls.__dataclass_fields__  # tol and atol keep their defaults: no repair here
         for name in ("tol", "atol"):
             object.__setattr__(out, name, fields[name].default)
+        C.flags.writeable = False
         object.__setattr__(out, "cov", C)
         object.__setattr__(out, "n_clipped", 0)
         extra = U.shape[1] - len(U)  # U^T U has this many more (zero) eigenvalues
@@ -192,6 +194,7 @@ class Dense(Noise):
                 "than its variances allow)"
             )
         out = object.__new__(cls)
+        C.flags.writeable = False  # (np.array made it a copy)
         fields = {"cov": C, "tol": tol, "atol": atol, "n_clipped": 0, "min_eigenvalue": 0.0}
         for name, value in (*fields.items(), ("_factor", None)):
             object.__setattr__(out, name, value)
