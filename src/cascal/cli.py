@@ -87,7 +87,7 @@ def check_output(
     if not folder and p.is_dir():
         raise InputError(f"{option} {p}: expected a file name, got an existing folder")
     last = os.path.basename(str(path))
-    if not folder and (last in ("", ".", "..") or str(path).endswith(os.sep)):
+    if not folder and last in ("", ".", ".."):
         raise InputError(  # (a review: "odir/" and "odir/." wrote a file "odir")
             f"{option} {path}: expected a file name, got a folder's (ending in {last or '/'})"
         )

@@ -105,10 +105,10 @@ class CompensationTable:
                 outside = ~(np.abs(r) < self.limit)  # (also infinite and NaN readings)
                 if self.arc is not None:
                     outside |= in_arc(r, self.arc, self.period)
-            else:  # outside the range, the end's node (no division: it might overflow)
+            else:  # outside the range, the end's node (the C divides only inside)
                 outside = ~((r >= self.lo) & (r <= self.hi))
-                t = np.where(outside, np.where(r > self.hi, self.n - 1, 0.0), r - self.lo)
-                t = np.where(outside, t, t / self.step)
+                end = np.where(r > self.hi, self.n - 1, 0.0)
+                t = np.where(outside, end, (r - self.lo) / self.step)
         t = np.clip(np.nan_to_num(t, nan=0.0), 0.0, self.n - 1)
         i = np.minimum(t.astype(np.int64), self.n - 2)
         t = t - i
