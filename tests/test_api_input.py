@@ -377,6 +377,24 @@ def test_one_number_and_text_as_readings():
         as_readings(object(), "r")
 
 
+def test_text_or_bools_among_numbers_are_refused():
+    """A leftover of the scalar readings' review: a list mixing numbers and text, and a
+    list or array of bools, had been read as numbers (``"1.0"`` as 1.0, ``True`` as 1.0)."""
+    from cascal.validation import as_positions
+
+    mixed = ([0.5, "1.0"], (0.5, b"1.0"), np.array([0.5, "1.0"], dtype=object))
+    for text in mixed:
+        with pytest.raises(InputError, match="r: expected numbers, got text"):
+            as_positions(text, "r")
+    for flags in ([0.5, True], [True, False], np.array([True, False]), [np.bool_(False), 1.0]):
+        with pytest.raises(InputError, match="r: expected numbers, got bools"):
+            as_positions(flags, "r")
+    assert as_positions([0.5, np.float32(1.0), 2], "r").tolist() == [0.5, 1.0, 2.0]
+    fitted = fit_gp(np.linspace(0.0, 1.0, 8), np.linspace(0.0, 1.0, 8) + 1e-3, noise=1e-8)
+    with pytest.raises(InputError, match="x: expected numbers, got bools"):
+        fitted.predict([0.5, True])
+
+
 def test_from_cascade_writes_the_period_its_method_and_kernel_have(tmp_path):
     """A review of the period's fix: a lut cascade given a periodic kernel wrote a period,
     which the loader refused (0.4.10's such files too); a Periodic with a Constant, which

@@ -254,3 +254,22 @@ def test_a_cascade_fits_the_same_numbers_whatever_blas_threads(trial, monkeypatc
     assert np.array_equal(a.models[1].kernel.theta, b.models[1].kernel.theta)
     r = np.linspace(0.1, 0.9, 7)
     assert np.array_equal(a.correct(r), b.correct(r))
+
+
+def test_a_stage_whose_known_noise_is_wrong_is_named():
+    """A leftover of a review: a stage's malformed known noise was refused without the
+    stage's name ("noise variance: expected shape (10,), got (9,)")."""
+    from cascal import InputError
+    from cascal.cascade import Stage
+
+    x = np.linspace(0.0, 1.0, 10)
+    cases = {
+        "noise variance: expected shape \\(10,\\), got \\(9,\\)": [1e-8] * 9,
+        "noise variance: expected finite values >= 0": -1.0,
+        "dense noise: expected a square": np.ones((10, 3)),
+    }
+    for message, noise in cases.items():
+        with pytest.raises(InputError, match=f"^encoder: {message}"):
+            Cascade([(x, x + 1e-3), Stage(x, x, noise, "encoder")])
+        with pytest.raises(InputError, match=f"^testbed: {message}"):
+            Cascade([Stage(x, x + 1e-3, noise, "testbed"), (x, x)])

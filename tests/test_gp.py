@@ -987,12 +987,17 @@ def test_the_public_likelihood_warns_where_it_needed_jitter():
     k = SquaredExp(0.2, 1e-6)
     with pytest.warns(JitterWarning, match=r"needed jitter 1e-18 on its diagonal") as rec:
         v = log_marginal_likelihood(x, y, kernel=k, noise_variance=1e-22)
-    assert len(rec) == 1
-    fit = fit_gp(x, y, kernel=k, hyperparameters=dict(k.params, noise_variance=1e-22))
+    assert len(rec) == 1 and rec[0].filename == __file__
+    # a fit given those hyperparameters warns too (it had recorded the jitter in silence)
+    with pytest.warns(JitterWarning, match=r"needed jitter 1e-18 .* \(FittedGP.jitter\)") as rec:
+        fit = fit_gp(x, y, kernel=k, hyperparameters=dict(k.params, noise_variance=1e-22))
+    assert len(rec) == 1 and rec[0].filename == __file__
     assert fit.jitter == pytest.approx(1e-18, rel=1e-12) and v == fit.log_marginal_likelihood
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # none where no jitter is needed
+        warnings.simplefilter("error")  # none where no jitter is needed, nor for a search
         log_marginal_likelihood(x, y, kernel=k, noise_variance=1e-10)
+        fit_gp(x, y, kernel=k, hyperparameters=dict(k.params, noise_variance=1e-10))
+        fit_gp(x, y, n_restarts=1)
 
 
 def test_a_sum_of_kernels_with_a_known_noise_also_starts_from_its_parts():

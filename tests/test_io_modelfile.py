@@ -10,7 +10,7 @@ import jsonschema
 import numpy as np
 import pytest
 
-from cascal.errors import InputError, ModelFileError
+from cascal.errors import InputError, JitterWarning, ModelFileError
 from cascal.gp import FittedGP, fit_gp
 from cascal.io import modelfile as mf
 from cascal.io.modelfile import load_model, model_to_dict, save_model
@@ -259,7 +259,10 @@ def test_a_factor_with_recorded_jitter_is_accepted_and_an_edited_jitter_is_not()
 
     x = np.linspace(0.0, 0.05, 50)
     hyper = {"length_scale": 0.2, "variance": 1e-4}
-    fit = fit_gp(x, x + 1e-3 * np.sin(20 * x), noise=0.0, learn_noise=False, hyperparameters=hyper)
+    with pytest.warns(JitterWarning, match="needed jitter"):
+        fit = fit_gp(
+            x, x + 1e-3 * np.sin(20 * x), noise=0.0, learn_noise=False, hyperparameters=hyper
+        )
     assert fit.jitter > 0.0
     mf._check_factor(fit)
     with pytest.raises(ValueError, match=r"cholesky does not factorise the covariance"):

@@ -55,13 +55,14 @@ def test_cholesky_singular_gets_jitter():
 def test_jitter_recorded_in_fit():
     x, _ = _singular()
     y = x + 1e-3 * np.sin(20 * x)
-    fit = fit_gp(
-        x,
-        y,
-        noise=0.0,
-        learn_noise=False,
-        hyperparameters={"length_scale": 0.2, "variance": 1e-4},
-    )
+    with pytest.warns(JitterWarning, match="needed jitter"):
+        fit = fit_gp(
+            x,
+            y,
+            noise=0.0,
+            learn_noise=False,
+            hyperparameters={"length_scale": 0.2, "variance": 1e-4},
+        )
     assert fit.jitter > 0
     assert fit.jitter == pytest.approx(cholesky(se(x, x, 0.2, 1e-4))[1], rel=1e-12, abs=0)
     Kt = se(x, x, 0.2, 1e-4) + fit.jitter * np.eye(x.size)
@@ -156,7 +157,8 @@ def test_a_noiseless_factor_beyond_round_off_conditioning_gets_jitter():
     x = np.sort(rng.uniform(0, 1, 30))
     y = x + 1e-3 * np.sin(5 * x) + 1e-5 * rng.standard_normal(30)
     hp = {"length_scale": 0.1, "variance": 1e-6, "noise_variance": 0.0}
-    fit = fit_gp(x, y, hyperparameters=hp)
+    with pytest.warns(JitterWarning, match="needed jitter 1e-18"):
+        fit = fit_gp(x, y, hyperparameters=hp)
     assert fit.jitter == pytest.approx(JITTER_STEPS[0] * 1e-6, rel=1e-12, abs=0)
     with pytest.warns(JitterWarning, match="needed jitter 1e-18"):
         value = log_marginal_likelihood(x, y, kernel=SquaredExp(0.1, 1e-6))
@@ -179,7 +181,8 @@ def test_a_singular_known_noise_with_correlations_and_no_white_noise_gets_jitter
     y = x + 1e-4 * np.sin(3 * x) + 1e-7 * np.random.default_rng(0).standard_normal(n)
     hp = {"length_scale": 0.2, "variance": 1e-6}
     shared = 1e-10 * np.ones((n, n))
-    fit = fit_gp(x, y, noise=shared, learn_noise=False, hyperparameters=hp)
+    with pytest.warns(JitterWarning, match="needed jitter"):
+        fit = fit_gp(x, y, noise=shared, learn_noise=False, hyperparameters=hp)
     assert fit.jitter > 0.0
     with pytest.warns(JitterWarning, match="needed jitter"):
         value = log_marginal_likelihood(x, y, kernel=SquaredExp(0.2, 1e-6), noise=shared)

@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cascal import Cascade, CascalError, InputError, SquaredExp, fit_gp, log_marginal_likelihood
+from cascal import (
+    Cascade,
+    CascalError,
+    InputError,
+    JitterWarning,
+    SquaredExp,
+    fit_gp,
+    log_marginal_likelihood,
+)
 from cascal.cascade import Stage
 
 X = np.linspace(0.0, 1.0, 6)
@@ -233,7 +241,8 @@ def test_averaged_repeats_learn_the_noise_of_positions_read_once():
     assert positive.noise_variance == 0.0
     hp = {"length_scale": 0.5, "variance": 1e-8}  # noise=0 stays exact (a diff review)
     for zero in (0.0, np.zeros(r.x.size)):
-        assert fit_gp(r.x, r.y, noise=zero, hyperparameters=hp).noise_variance == 0.0
+        with pytest.warns(JitterWarning, match="needed jitter"):  # (repeated positions)
+            assert fit_gp(r.x, r.y, noise=zero, hyperparameters=hp).noise_variance == 0.0
 
 
 def test_averaged_readings_none_repeated_learn_the_noise_too():

@@ -271,7 +271,10 @@ def _as_stage(s: Stage | tuple[object, object], k: int, n: int) -> Stage:
         noise = None
     xa, ya = check_pair(x, y, (f"{name} x", f"{name} y"))
     check_increasing(xa, ya, (f"{name} x", f"{name} y"))
-    as_noise(noise, xa.size)
+    try:
+        as_noise(noise, xa.size)
+    except InputError as exc:  # (a leftover of a review: the stage went unnamed)
+        raise InputError(f"{name}: {exc}") from None
     return Stage(xa, ya, noise, name)
 
 

@@ -119,6 +119,14 @@ def check_output(
         raise InputError(f"{option} {p}: {why}") from None
     os.close(fd)
     os.unlink(probe)
+    if mode is not None and stat.S_ISREG(mode) and not folder:
+        # a write-protected file (no write bit for anyone, or none for this user) is not
+        # replaced: the rename would (a review's leftover), as `rm` asks first
+        if not mode & 0o222 or not os.access(p, os.W_OK):
+            raise InputError(
+                f"{option} {path}: the file is write-protected; not replaced (make it "
+                "writable, or choose another name)"
+            )
 
 
 def file_label(path: str | Path, what: str = "a file") -> str:

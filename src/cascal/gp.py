@@ -157,14 +157,20 @@ def log_marginal_likelihood(
     theta = np.r_[kernel.theta, np.log(noise_variance)] if learned else kernel.theta
     v, g = obj.value_and_grad(theta, grad=eval_gradient)
     if obj.jitter:
-        warnings.warn(
-            f"the target covariance needed jitter {obj.jitter:.3g} on its diagonal to "
-            "factorise (not positive definite to round-off): the value is the jittered "
-            "matrix's; more noise_variance, or a shorter length scale, avoids it",
-            JitterWarning,
-            stacklevel=2,
-        )
+        _warn_jitter(obj.jitter, "the value is the jittered matrix's")
     return (v, g) if eval_gradient else v
+
+
+def _warn_jitter(jitter: float, what: str) -> None:
+    """Warn (:class:`JitterWarning`, at the caller's caller) that given hyperparameters'
+    target covariance needed ``jitter`` on its diagonal; ``what`` says what it changed."""
+    warnings.warn(
+        f"the target covariance needed jitter {jitter:.3g} on its diagonal to factorise "
+        f"(not positive definite to round-off): {what}; more noise_variance, or a shorter "
+        "length scale, avoids it",
+        JitterWarning,
+        stacklevel=3,
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -392,7 +398,9 @@ def fit_gp(
             read twice with the same correction and no known noise is refused: average
             repeats first.
         hyperparameters: Given values by name (``length_scale``, ``variance``,
-            ``noise_variance``, ...); nothing is optimised.
+            ``noise_variance``, ...); nothing is optimised. A
+            :class:`~cascal.errors.JitterWarning` says where their target covariance
+            needed jitter to factorise (as :func:`log_marginal_likelihood` does).
         n_restarts: Local optimiser starts: the best local maxima of a likelihood table
             (SE, Matern and periodic kernels, :mod:`cascal.surrogate`), or for a stage of
             over ``2 * SUBSET`` points without one the best optima of its subsets, at most
@@ -406,7 +414,7 @@ def fit_gp(
         names: Names of ``x`` and ``y`` in error messages.
     """
     with single_threaded_blas():
-        return _fit_gp(
+        gp = _fit_gp(
             x,
             y,
             kernel,
@@ -420,6 +428,9 @@ def fit_gp(
             bounds,
             names,
         )
+    if hyperparameters is not None and gp.jitter:  # (as log_marginal_likelihood warns)
+        _warn_jitter(gp.jitter, "the fit is the jittered matrix's (FittedGP.jitter)")
+    return gp
 
 
 def _fit_gp(

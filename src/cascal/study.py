@@ -8,14 +8,17 @@ study resumes where it stopped with the same command and ends with identical num
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
+import logging
 import multiprocessing
 import os
 import threading
 import time
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
 from concurrent.futures import (
     BrokenExecutor,
     CancelledError,
@@ -27,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError, WorkerError
+from .errors import CascalWarning, InputError, WorkerError
 from .gp import pin_blas
 from .io.atomic import save_figure, together, write_text
 from .io.studydb import StudyDB
@@ -90,7 +93,8 @@ def run_study(
             larger number; a smaller one summarises the first ``trials`` stored.
         config: Seed and fit settings (the folder's identity: other settings are refused).
         workers: Local worker processes (default: CPU count; 1 runs in this process).
-        scheduler: Address of a Dask scheduler to run on instead (needs ``distributed``).
+        scheduler: Address of a Dask scheduler to run on instead (needs ``distributed``);
+            a :class:`~cascal.errors.CascalWarning` says where it has no workers yet.
         executor: Any executor to run on instead (takes precedence).
         chunk: Trials per task (default: about 8 tasks per worker, at most 50 trials).
         progress: Called as ``progress(done, total)`` after every finished task.
@@ -105,10 +109,31 @@ def run_study(
         raise InputError(f"expected at least 1 trial and 1 worker, got {trials} and {workers}")
     if workers is not None and int(workers) > MAX_WORKERS:
         raise InputError(f"workers: expected at most {MAX_WORKERS} processes, got {workers}")
-    client = _connect(scheduler) if scheduler is not None and executor is None else None
+    if scheduler is not None and executor is None:
+        with _quiet_dask_client():
+            return _run_study(
+                out, trials, config, workers, _connect(scheduler), None, chunk, progress
+            )
+    return _run_study(out, trials, config, workers, None, executor, chunk, progress)
+
+
+def _run_study(
+    out: str | Path,
+    trials: int,
+    config: StudyConfig,
+    workers: int | None,
+    client,
+    executor: Executor | None,
+    chunk: int | None,
+    progress: Progress | None,
+) -> StudyOutcome:
+    """:func:`run_study` on ``client`` (a Dask client it closes), on ``executor``, or on
+    local workers."""
+    task = run_chunk
     if client is not None:
         client.run(pin_blas)  # workers run tasks on threads: one BLAS limit for all of them
         executor = client.get_executor()
+        task = _pinned_chunk  # (and workers that join later pin it with their first task)
     folder = Path(out)
     try:
         db = StudyDB(folder, config.as_dict())
@@ -129,7 +154,7 @@ def run_study(
         if progress:
             progress(done, trials)
         try:
-            for results in _execute(config, chunks, executor, n_workers):
+            for results in _execute(config, chunks, executor, n_workers, task):
                 db.add(results)
                 done += len(results)
                 if progress:
@@ -219,8 +244,16 @@ def _start_worker(parent: int) -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
-def _execute(config, chunks, executor, n_workers):
-    """Yield each chunk's results as it completes, on the chosen executor."""
+def _pinned_chunk(config: StudyConfig, indices: list[int]) -> list[TrialResult]:
+    """:func:`run_chunk` in a Dask worker, its BLAS pinned to one thread first (a no-op
+    where :func:`pin_blas` ran): workers may join the cluster after the study started."""
+    pin_blas()
+    return run_chunk(config, indices)
+
+
+def _execute(config, chunks, executor, n_workers, task):
+    """Yield each chunk's results as it completes, on the chosen executor (``task`` runs
+    a chunk there: :func:`run_chunk` or :func:`_pinned_chunk`)."""
     if not chunks:
         return
     if executor is None and n_workers == 1:
@@ -239,7 +272,7 @@ def _execute(config, chunks, executor, n_workers):
                 if pool is not None:
                     futures = submit_all(pool, run_chunk, calls)
                 else:
-                    futures = [executor.submit(run_chunk, *call) for call in calls]
+                    futures = [executor.submit(task, *call) for call in calls]
                 for fut in completed(futures, got):
                     yield _result(fut)
             except Exception:  # a signal that struck the workers too (a process group's)
@@ -284,19 +317,41 @@ def _connect(address: str):
             f"--scheduler {address}: needs Dask's distributed package, which is not installed: "
             "pip install 'cascal[dask]'"
         ) from None
-    import logging
-
-    # a lost cluster is the study's one line, not also Dask's log (set after the import,
-    # which configures that logger)
-    logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
     try:
         _handshake(address, CONNECT_SECONDS)
-        return Client(address, timeout=f"{CONNECT_SECONDS:g}s")
+        client = Client(address, timeout=f"{CONNECT_SECONDS:g}s")
     except (OSError, ValueError, TimeoutError, TypeError) as exc:  # TypeError: tls://, ucx://
         why = f"{exc}" if str(exc) else f"no answer within {CONNECT_SECONDS:g} s"
         if isinstance(exc, TimeoutError) and address.rstrip("/").endswith(":8787"):
             why += "; 8787 is the dashboard's port, the scheduler's is 8786 by default"
         raise InputError(f"--scheduler {address}: cannot reach a Dask scheduler ({why})") from None
+    if not client.scheduler_info().get("workers"):  # (a leftover: it waited with no word)
+        warnings.warn(  # (not refused: an adaptive cluster starts workers once work comes)
+            f"--scheduler {address}: the scheduler has no workers yet; the study waits for "
+            f"them (start some with `dask worker {address}`, or stop with Ctrl-C)",
+            CascalWarning,
+            stacklevel=3,
+        )
+    return client
+
+
+@contextlib.contextmanager
+def _quiet_dask_client() -> Iterator[None]:
+    """Dask's client logger held to critical messages while a study runs on a cluster (a
+    lost cluster is the study's one line, not also Dask's log), then restored: a review
+    found it set for the rest of the process."""
+    try:
+        import distributed  # noqa: F401  (its import configures the logger: set it after)
+    except ImportError:  # (_connect names what is missing)
+        yield
+        return
+    log = logging.getLogger("distributed.client")
+    level = log.level
+    log.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        log.setLevel(level)
 
 
 def _handshake(address: str, seconds: float) -> None:

@@ -46,13 +46,11 @@ def as_positions(a: object, name: str) -> np.ndarray:
     """``a`` as a finite float64 vector, shape (n,); raises :class:`InputError` naming ``name``."""
     if isinstance(a, str | bytes) or a is None:  # (NumPy would read "0.5" as a number)
         raise InputError(f"{name}: expected numbers, got {type(a).__name__} {a!r}")
-    if isinstance(a, np.ndarray):  # (object arrays: an unconverted pandas column's)
-        first = a.flat[0] if a.size else None
-        text = a.dtype.kind in "SU" or (a.dtype.kind == "O" and isinstance(first, str | bytes))
-    else:
-        text = isinstance(a, list | tuple) and bool(a) and isinstance(a[0], str | bytes)
-    if text:  # (text, read as numbers by NumPy: a CSV column not converted, say)
+    kinds = _element_kinds(a)
+    if "text" in kinds:  # (text, read as numbers by NumPy: a CSV column not converted, say)
         raise InputError(f"{name}: expected numbers, got text (convert it first)")
+    if "bool" in kinds:  # (read as 1.0 and 0.0: a mask passed for readings, say)
+        raise InputError(f"{name}: expected numbers, got bools")
     try:  # (a ragged list fails in either call)
         complex_ = np.iscomplexobj(a)
         arr = np.asarray(a, dtype=float) if not complex_ else None
@@ -79,6 +77,28 @@ def as_positions(a: object, name: str) -> np.ndarray:
             + (f" (and {bad.size - 1} more)" if bad.size > 1 else "")
         )
     return arr
+
+
+def _element_kinds(a: object) -> set[str]:
+    """Which of ``"text"`` and ``"bool"`` occur among the entries of an array or list
+    ``a`` (a list's top level; an object array's every entry): NumPy reads both as numbers,
+    ``"1.0"`` and ``True`` alike, also mixed with numbers."""
+    if isinstance(a, np.ndarray):  # (object arrays: an unconverted pandas column's)
+        kind = a.dtype.kind
+        if kind in "SU":
+            return {"text"}
+        if kind == "b":
+            return {"bool"}
+        items = a.flat if kind == "O" else ()
+    else:
+        items = a if isinstance(a, list | tuple) else ()
+    kinds = set()
+    for v in items:
+        if isinstance(v, str | bytes):
+            kinds.add("text")
+        elif isinstance(v, bool | np.bool_):
+            kinds.add("bool")
+    return kinds
 
 
 def as_readings(a: object, name: str) -> tuple[np.ndarray, bool]:

@@ -319,3 +319,21 @@ def test_an_input_from_a_pipe_is_named_as_such_in_titles(tmp_path):
     os.mkfifo(tmp_path / "fifo")
     assert file_label(tmp_path / "m.json") == "m.json"
     assert file_label(tmp_path / "fifo", "check points") == "check points read from a pipe"
+
+
+def test_a_write_protected_output_file_is_not_replaced(tmp_path, linear_model, linear_files):
+    """A leftover of a review: ``-o`` naming a read-only file replaced it (the atomic
+    write's rename needs only the folder's permission). It is refused before any work, as
+    a link to one is; a writable file is replaced as before."""
+    out = tmp_path / "corrected.csv"
+    out.write_text("old\n")
+    out.chmod(0o444)
+    (tmp_path / "link.csv").symlink_to(out)
+    for dest in (out, tmp_path / "link.csv"):
+        with pytest.raises(InputError, match=r"write-protected; not replaced"):
+            check_output(dest)
+    res = run_cascal("correct", linear_model, linear_files[1], "-o", out)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "write-protected; not replaced" in res.stderr and out.read_text() == "old\n"
+    out.chmod(0o644)
+    check_output(out)
