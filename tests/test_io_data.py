@@ -431,6 +431,10 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
         ("reading\n[mm]\n0.1\n0.2\n", "row 2: expected numbers, got '[mm]': a row of units"),
         ("# run 7\ntestbed,reference\nmm,mm\n0.1,0.1\n", "row 2 ('testbed,reference'): de"),
         ("reading\n0.1_16\n0.2\n", "column 'reading': expected a number, got '0.1_16'\n"),
+        # a README review's cases: an instrument's word beside a number in the first row
+        # was taken for a second header row (row 1 named, "delete row 2" advised)
+        ("testbed,reference\n0.098,ERR\n0.5,0.5\n", "row 2, column 'reference': expected a"),
+        ("testbed,reference\nn/a,0.1\n0.5,0.5\n", "row 2, column 'testbed': expected a num"),
     ],
     ids=[
         "decimal_comma",
@@ -450,6 +454,8 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
         "units_row_of_one_column",
         "comment_then_units_row",
         "typo_in_first_row_of_one_column",
+        "word_beside_a_number_in_the_first_row",
+        "word_then_a_number_in_the_first_row",
     ],
 )
 def test_spreadsheet_habits_get_a_hint(tmp_path, text, hint):

@@ -126,6 +126,8 @@ def test_device_target_matches_refitted_cascade(cascade):
     low = _lower(fitted, trial)
     cand = np.linspace(0.0, 1.0, 41)
     plan = plan_reference(fitted.models[0], cand, 4, lower=low)
+    with pytest.raises(InputError, match=r"lower: expected a cascal.planning.LowerStage\(gp, "):
+        plan_reference(fitted.models[0], cand, 4, lower=fitted.models[1])  # (a README review)
     # (u is a square root of k - v^T v: the planner's BLAS threads and predict's single one
     # sum in different orders, 1.6e-10 apart at a point where the difference cancels)
     u_before = fitted.models[1].predict(low.where, return_std=True)[1]

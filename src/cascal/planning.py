@@ -149,6 +149,13 @@ def plan_reference(
         )
     if (where is None) == (lower is None):
         raise InputError("plan_reference: give the target as where= or lower=, not both")
+    if lower is not None and not isinstance(lower, LowerStage):  # (a README review: a
+        # FittedGP given met an AttributeError)
+        raise InputError(
+            "lower: expected a cascal.planning.LowerStage(gp, upper, where) (the stage below: "
+            f"its fitted GP, its readings of this stage's sensor, where it is used), got "
+            f"{type(lower).__name__}"
+        )
     s2 = _noise(testbed, noise_variance)
     points = as_positions(where, "where") if lower is None else as_positions(lower.upper, "upper")
     # Stage 0's posterior covariance between the target's points and the candidates (q, c),

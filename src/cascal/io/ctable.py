@@ -116,8 +116,13 @@ def c_header(table: CompensationTable, name: str, about: list[str]) -> str:
             f"    if ({t} > {p}_N - 1) {t} = {p}_N - 1;\n"
         )
         extra = f"static const double {p}_HI = {table.hi!r};\n"
+    maths = (  # (a README review: the linear table's comment asked for -lm it does not need)
+        "fmod, fabs and the quiet comparisons: link with -lm"
+        if table.period is not None
+        else "the quiet comparisons (macros: no -lm needed)"
+    )
     include = (
-        "#include <math.h> /* fmod, fabs and the quiet comparisons: link with -lm */\n"
+        f"#include <math.h> /* {maths} */\n"
         "#include <float.h>\n\n"
         "#if DBL_MANT_DIG != 53 || DBL_MAX_EXP != 1024\n"
         '#error "this table needs IEEE 754 binary64 doubles: a 32-bit double loses its '

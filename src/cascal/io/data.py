@@ -382,6 +382,10 @@ def _check_preamble(text: str, first: str, width: int, name: str) -> None:
     above = [j for j in range(1, numbers or 0) if lines[j - 1].strip()]
     if len(above) < 2 or any(_numberish(lines[j - 1]) for j in above):
         return  # (a row of numbers with a typo: the rows below name it)
+    nearest = lines[above[-1] - 1]
+    if _widest(nearest) >= width and any(_is_value(c) for c in _nonempty(nearest)):
+        return  # the first data row, with a word beside a number (an instrument's ERR, n/a:
+        # the rows below name it; a review found it taken for a second header row)
     # the header: the nearest row above the numbers of as many cells, not one of units
     header = next(
         (j for j in reversed(above) if _widest(lines[j - 1]) >= width and not _units(lines[j - 1])),
