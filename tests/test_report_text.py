@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import html
+import re
 
 import numpy as np
 import pytest
@@ -21,8 +22,16 @@ def test_a_rotary_stretch_across_zero_is_written_on_one_turn():
     html = build_report(model, source="rotary.json")
     assert "could not measure (deg): 335 to 25 (across 0)." in html
     assert "385" not in html.split("could not measure (deg):")[1].split("</p>")[0]
-    linear = fit_model(demo_stages(), n_restarts=1)
-    assert "could not measure (m): [0.343953, 0.528242]." in build_report(linear, source="l")
+    linear = fit_model(demo_stages(), n_restarts=1)  # (0.34395260854 to 0.52824241264:
+    # rounded outward since a report review found such stretches printed shrunk)
+    page = build_report(linear, source="l")
+    assert "could not measure (m): [0.343952, 0.528243]." in page
+    # the reach of the plan, rounded inward as ranges are (it had ended past the last point)
+    from cascal.text import range_text
+    from cascal.workflow import plan_measurements
+
+    reach = plan_measurements(linear, 5).reach
+    assert ", ".join(range_text(a, b) for a, b in reach) in page
 
 
 def test_uncertainties_are_also_given_in_the_figures_unit():
@@ -65,6 +74,8 @@ def test_the_report_repeats_what_fit_warned_of():
     assert "Cautions" in page and "3 points cannot tell the readings" in page
     homo = build_report(fit_model([ref, dev], method="homoscedastic", n_restarts=2))
     assert "Cautions" in homo and html.escape(HOMOSCEDASTIC_U) in homo
+    assert "(about 95 %)" not in homo and "(nominally 95 %; this method" in homo  # (a review)
+    assert "(about 95 %)" in page
     assert "Cautions" not in build_report(fit_model([ref, dev], n_restarts=2))
     assert finding.stage == 0 and finding.points == 3
 
@@ -223,3 +234,80 @@ def test_millimetres_and_radians_are_shown_with_a_smaller_prefix():
     assert display_scale("rad", 0.02) == (1e3, "mrad")
     assert display_scale("deg", 0.001) == (3600.0, "arcsec")
     assert display_scale("inch", 1e-4) == (1.0, "inch")  # no ladder: as it is
+
+
+def test_a_rotary_stage_figure_shows_every_reading_whatever_the_other_stages_convention():
+    """A report review's case: stage 0 read in [-180, 180) and the device in [0, 360): every
+    stage was drawn on the window from -225 to 225 deg and the device readings beyond 225,
+    a suspect among them, fell off the axis. Each stage now has its own window (the
+    device's from -45 deg), and readings are drawn on the turn shown."""
+    from dataclasses import replace
+
+    from cascal.report import correction_curve, stage_figure
+    from cascal.reportdata import seam, stage_views
+
+    case = rotary_demo(0)
+    ref = case.stages[0]
+    shift = np.where(ref.x >= 180.0, 360.0, 0.0)  # the same angles, written -180 to 180
+    signed = replace(ref, x=ref.x - shift, y=ref.y - shift)
+    model = fit_model(
+        demo_stages(replace(case, stages=(signed, case.stages[1]))),
+        kernel="periodic", period=360.0, unit="deg", n_restarts=1,
+    )  # fmt: skip
+    assert [seam(model, k) for k in (0, 1)] == [-180.0, 0.0]
+    assert correction_curve(model).grid[0] == pytest.approx(-45.0)
+    for view in stage_views(model):
+        ax, rx = stage_figure(view, unit="deg", period=360.0).axes
+        lo, hi = ax.get_xlim()
+        for axis in (ax, rx):
+            points = [ln for ln in axis.get_lines() if ln.get_linestyle() == "None"]
+            xs = np.concatenate([ln.get_xdata() for ln in points] or [np.empty(0)])
+            if axis is ax and view.target_sd is not None:  # (errorbar: its own container)
+                xs = np.concatenate([xs, axis.containers[0].lines[0].get_xdata()])
+            assert xs.size >= view.x.size and np.all((xs >= lo) & (xs <= hi))
+
+
+def test_the_prior_mean_offset_carries_its_unit():
+    """A report review's case: the report's hyperparameter table showed the prior mean
+    offset as a bare number ("-100.021"), where ``cascal info`` gives "-100.021 m"."""
+    from cascal.text import hyperparameter_unit
+
+    assert hyperparameter_unit("prior mean offset", "mm", False) == " mm"
+    assert hyperparameter_unit("prior mean offset", "deg", True) == " deg"
+    assert hyperparameter_unit("length_scale", "deg", True) == ""
+    case = rotary_demo(0)
+    model = fit_model(demo_stages(case)[:1], mean="offset", unit="deg", n_restarts=1)
+    page = build_report(model)
+    assert re.search(r"prior mean offset</td><td>-?[0-9.e+-]+ deg</td>", page), page[:0]
+
+
+def test_a_lookup_table_stage_says_it_was_not_screened():
+    """A report review's case: a GP stage's section says what the outlier screening found,
+    a lookup table's said nothing, though an outlier passes into its correction."""
+    model = fit_model(demo_stages(rotary_demo(0))[:1], method="lut", unit="deg")
+    page = build_report(model)
+    assert "Outlier screening does not apply (no noise model)" in page
+
+
+def test_a_suspect_is_shown_with_the_digits_its_discrepancy_needs():
+    """A report review's case: readings near 1000 mm printed to 6 digits showed target and
+    prediction alike ("1043.59") for a point 22 standard deviations out. The table gives
+    10 digits and the difference itself, which with u recomputes z."""
+    from cascal.io.data import StageData
+
+    rng = np.random.default_rng(3)
+    x = np.linspace(1000.0, 1100.0, 41)
+    y = x + 1e-3 * np.sin(x / 15.0) + 1e-5 * rng.standard_normal(x.size)
+    y[19] += 4e-4
+    rows = np.arange(2, x.size + 2)
+    stage = StageData(x, y, None, np.ones(x.size, int), rows, demo_stages()[0].source)
+    model = fit_model([stage], unit="mm", n_restarts=2)
+    page = build_report(model)
+    cells = re.findall(r"<td>([^<]*)</td>", page.split("target - predicted [mm]")[1])[:6]
+    reading, target, predicted, diff, u, z = cells
+    assert float(reading) == pytest.approx(x[19], abs=1e-6)
+    assert float(target) == pytest.approx(y[19], abs=1e-6)
+    assert float(target) != float(predicted)
+    assert float(diff) == pytest.approx(float(target) - float(predicted), rel=1e-3, abs=2e-9)
+    assert float(z) == pytest.approx(float(diff) / float(u), rel=2e-3, abs=0.06)
+    assert float(z) > 10.0

@@ -551,11 +551,11 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             if f.stem not in fitted:
                 discard_model(model_path(out / "devices", f))
                 finished.append(DeviceResult(f.stem, str(f), error=INTERRUPTED))
-        path = write_text(summary_path, _fleet_csv(finished, notes))
+        path = write_text(summary_path, _fleet_csv(finished, notes, tb.unit))
         what = "terminated" if isinstance(exc, Terminated) else "interrupted"
         warn("fit-devices", f"{what} after {len(finished)} of {len(files)} devices: {path}")
         raise
-    summary = write_text(summary_path, _fleet_csv(results, notes))
+    summary = write_text(summary_path, _fleet_csv(results, notes, tb.unit))
     n_bad = sum(r.error is not None for r in results)
     n_sus = sum(bool(r.screening and r.screening.rows) for r in results)
     if level is not None:
@@ -580,14 +580,23 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
 
 def _cmd_report(args: argparse.Namespace) -> int:
     """Write a self-contained HTML report of a model file."""
+    from .cli_info import file_sha256
     from .io.atomic import write_text
+    from .io.modelfile import load_model_checksum
     from .report import build_report
 
     check_output(args.output, inputs=(args.model,))
-    model = load_checked(args.model, o=args.output)
+    model, checksum = load_model_checksum(args.model)
+    check_not_inputs(args.model, model, o=args.output)
     if not is_stdout(args.output) and Path(args.output).suffix.lower() not in (".html", ".htm"):
         raise InputError(f"-o {args.output}: expected an .html file name (the report is HTML)")
-    path = write_text(args.output, build_report(model, source=file_label(args.model, "a model")))
+    page = build_report(
+        model,
+        source=file_label(args.model, "a model"),
+        checksum=checksum,
+        sha256=file_sha256(args.model),
+    )
+    path = write_text(args.output, page)
     print(f"Report written to {path}")
     return 0
 
@@ -736,10 +745,15 @@ def model_lines(model) -> list[str]:
     return [*lines, f"Calibrated device range: {arc or f'{span} {model.unit}'}"]
 
 
-def _fleet_csv(results, notes: dict[str, list[str]]) -> str:
-    """The fleet summary: one row per device; ``notes``: its warnings, by device."""
+def _fleet_csv(results, notes: dict[str, list[str]], unit: str) -> str:
+    """The fleet summary: one row per device; ``notes``: its warnings, by device; ``unit``
+    of the readings (a column: a review found the file silent on it). A rotary device
+    measured over part of the turn gives the arc its readings leave out (``arc_left_out``,
+    ``from to to``, rounded outward): its range columns span the readings on 0 to 360."""
     import csv
     import io
+
+    from .text import measured_ends
 
     names = []
     for r in results:
@@ -751,11 +765,13 @@ def _fleet_csv(results, notes: dict[str, list[str]]) -> str:
             "device",
             "status",
             "points",
+            "unit",
             *names,
             "rms_correction",
             "max_u",
             "range_lo",
             "range_hi",
+            "arc_left_out",
             "suspect_rows",
             "model",
             "error",
@@ -766,13 +782,16 @@ def _fleet_csv(results, notes: dict[str, list[str]]) -> str:
         hp = [repr(r.hyperparameters[n]) if n in r.hyperparameters else "" for n in names]
         nums = [r.rms_correction, r.max_u, *r.calibrated_range]
         cells = ["" if v != v else repr(float(v)) for v in nums]
+        arc = "{1} to {0}".format(*measured_ends(r.arc)) if r.arc is not None else ""
         w.writerow(
             [
                 r.device,
                 "error" if r.error else "ok",
                 r.points or "",
+                unit if not r.error else "",
                 *hp,
                 *cells,
+                arc,
                 " ".join(map(str, r.screening.rows)) if r.screening else "",
                 r.model or "",
                 r.error or "",

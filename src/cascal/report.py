@@ -23,7 +23,15 @@ from .io.modelfile import CalibrationModel
 from .plots import figure_style, plot_change, plot_plan, plot_verification
 from .reportdata import CurveView, StageView, correction_curve, stage_views
 from .screening import LEVEL, Screening
-from .text import arc_text, caution_lines, hyperparameter_unit, range_text, shown
+from .text import (
+    arc_text,
+    caution_lines,
+    hyperparameter_unit,
+    outward_ends,
+    range_text,
+    shown,
+    understates_u,
+)
 from .verification import Comparison, Verification
 from .workflow import MeasurementPlan, arc_width, plan_measurements, summarize_device
 
@@ -77,15 +85,16 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
     fig = Figure(figsize=(8.0, 3.4 if table else 5.8), layout="constrained")
     ax, rx = (fig.subplots(), None) if table else fig.subplots(2, 1, sharex=True)
     corr = view.targets - view.x
+    x = _on_window(view.x, view.grid, period)  # the readings where the axis shows them
     f, su = display_scale(unit, float(np.max(np.abs(corr))) if corr.size else 0.0)
     ax.plot(view.grid, (view.mean - view.grid) * f, color="C0", lw=1.5, label="fit")
     if view.target_sd is not None:
         ax.errorbar(
-            view.x, corr * f, yerr=Z95 * view.target_sd * f, fmt=".", color="k", ms=3,
+            x, corr * f, yerr=Z95 * view.target_sd * f, fmt=".", color="k", ms=3,
             elinewidth=0.6, label="targets (95 % known noise)",
         )  # fmt: skip
     else:
-        ax.plot(view.x, corr * f, "k.", ms=4, label="data")
+        ax.plot(x, corr * f, "k.", ms=4, label="data")
     _shade(ax, view.gaps, period, "reference could not measure")
     ax.set_ylabel(f"correction [{su}]")
     ax.legend(fontsize=7, loc="best")
@@ -107,16 +116,16 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
             view.grid, -b, b, color="C0", alpha=0.25, lw=0, label="95 % band of the fit"
         )
     if view.residual_band is not None:
-        order = np.argsort(view.x)
-        xb, b = view.x[order], view.residual_band[order] * fr
+        order = np.argsort(x)
+        xb, b = x[order], view.residual_band[order] * fr
         rx.plot(xb, b, color="C2", lw=0.8, label="95 % of target noise")
         rx.plot(xb, -b, color="C2", lw=0.8)
     rx.axhline(0.0, color="0.3", lw=0.8)
-    rx.plot(view.x, view.residuals * fr, ".", color="C3", ms=4, label="residual (target - fit)")
+    rx.plot(x, view.residuals * fr, ".", color="C3", ms=4, label="residual (target - fit)")
     sus = [q.index for q in view.screening.suspects] if view.screening else []
     if sus:
         rx.plot(
-            view.x[sus], view.residuals[sus] * fr, "o", mfc="none", mec="k", ms=9, mew=1.2,
+            x[sus], view.residuals[sus] * fr, "o", mfc="none", mec="k", ms=9, mew=1.2,
             label="suspect (outlier screening)",
         )  # fmt: skip
     _shade(rx, view.gaps, period, None)
@@ -168,6 +177,15 @@ def correction_figure(curve: CurveView, *, unit: str, period: float | None = Non
     return fig
 
 
+def _on_window(x: np.ndarray, grid: np.ndarray, period: float | None) -> np.ndarray:
+    """Readings ``x`` (n,) of a periodic stage moved by whole periods onto the turn its
+    figure shows (from an eighth of a period after ``grid``'s start); others as given."""
+    if period is None:
+        return x
+    origin = float(grid[0]) + period / 8
+    return origin + np.mod(x - origin, period)
+
+
 def _measured(grid: np.ndarray, arc: tuple[float, float] | None, period: float | None):
     """True (g,) where ``grid`` lies outside a periodic model's arc its device readings
     leave out (everywhere without one): the figures' axes are scaled there, so that the
@@ -217,11 +235,11 @@ def _stretch(a: float, b: float, period: float | None) -> str:
     """``[a, b]``; on a rotary axis both ends on one turn, ``a to b (across 0)`` where the
     stretch passes the zero."""
     if period is None:
-        return f"[{_num(a)}, {_num(b)}]"
-    lo, hi = a % period, b % period
-    if hi < lo:
-        return f"{_num(lo)} to {_num(hi)} (across 0)"
-    return f"[{_num(lo)}, {_num(hi)}]"
+        return "[{}, {}]".format(*outward_ends(a, b))
+    lo, hi = outward_ends(a % period, b % period)
+    if float(hi) < float(lo):
+        return f"{lo} to {hi} (across 0)"
+    return f"[{lo}, {hi}]"
 
 
 def _png(fig: Figure) -> str:
@@ -231,7 +249,12 @@ def _png(fig: Figure) -> str:
 
 
 def build_report(
-    model: CalibrationModel, *, title: str = "cascal calibration report", source: str = ""
+    model: CalibrationModel,
+    *,
+    title: str = "cascal calibration report",
+    source: str = "",
+    checksum: str | None = None,
+    sha256: str | None = None,
 ) -> str:
     """The report of ``model`` as one self-contained HTML page.
 
@@ -239,6 +262,9 @@ def build_report(
         model: A loaded or freshly fitted model.
         title: Page title.
         source: Name of the model file, shown in the summary.
+        checksum: The model file's content checksum (sha256, hex), shown where given, as
+            ``cascal info`` shows it: it ties the report to one model file (a review).
+        sha256: The SHA-256 of the model file itself, shown where given.
     """
     e = html.escape
     unit = model.unit
@@ -250,6 +276,8 @@ def build_report(
     )
     summary = [
         ("model file", source or "(in memory)"),
+        *([("content checksum (sha256)", checksum)] if checksum else []),
+        *([("SHA-256 of the file", sha256)] if sha256 else []),
         ("method", model.method),
         ("kernel", model.kernel or "none (lookup tables)"),
         ("unit", unit),
@@ -258,7 +286,8 @@ def build_report(
         (
             "fitted",
             f"{model.created or '(not saved yet)'} with cascal "
-            f"{model.cascal_version or __version__}, seed {model.seed}",
+            f"{model.cascal_version or __version__}, seed {model.seed}, "
+            f"{model.n_restarts} optimiser starts per stage",
         ),
     ]
     parts = [
@@ -302,7 +331,11 @@ def build_report(
                 rows.append(("log marginal likelihood", _num(view.log_marginal_likelihood)))
             parts.append(_table(["hyperparameter", "value"], rows))
         else:
-            parts.append("<p>Lookup table: linear interpolation, no uncertainty.</p>")
+            parts.append(  # (a report review: nothing said the table was not screened)
+                "<p>Lookup table: linear interpolation, no uncertainty. Outlier screening does "
+                "not apply (no noise model): the table passes through every point, an outlier "
+                "too; <code>cascal fit</code> checked the spread of repeated readings only.</p>"
+            )
         if view.screening is not None:
             parts.append(_screening_html(view.screening, unit, bool(np.any(view.counts > 1))))
         if view.gaps:
@@ -313,16 +346,25 @@ def build_report(
         parts.append(_img(stage_figure(view, unit=unit, period=model.period), f"stage {k} fit"))
     curve = correction_curve(model)
     parts.append("<h2>Correction of device readings</h2>")
+    cover = (  # (a report review: "about 95 %" right below a caution saying 66 %)
+        "nominally 95 %; this method's covered far less in simulations, see Cautions"
+        if understates_u(model)
+        else "about 95 %"
+    )
     note = (
-        "The band is the expanded uncertainty U = 2u of the correction (about 95 %). It is the "
+        f"The band is the expanded uncertainty U = 2u of the correction ({cover}). It is the "
         "uncertainty of the calibration map at a reading; the repeatability of a single reading "
         "comes on top."
         if curve.u is not None
         else "Lookup tables give no uncertainty."
     )
     parts.append(f"<p>{e(note)}</p>")
-    if curve.u is not None:  # (as info gives it: a rotary device's unmeasured arc left out)
-        largest = float(summarize_device(model)["max_u"])
+    size = summarize_device(model)  # (as info gives them: a rotary device's unmeasured arc
+    # left out; the RMS correction had been info's alone, a review found)
+    rms = _quantity(float(size["rms_correction"]), unit)
+    parts.append(f"<p>RMS correction over the calibrated range: {e(rms)}.</p>")
+    if curve.u is not None:
+        largest = float(size["max_u"])
         parts.append(f"<p>Largest u over the calibrated range: {e(_quantity(largest, unit))}.</p>")
     parts.append(_img(correction_figure(curve, unit=unit, period=model.period), "final correction"))
     if curve.u is not None:
@@ -368,12 +410,22 @@ def _screening_html(s: Screening, unit: str, repeats: bool) -> str:
             f"(leave-one-out, |z| below {s.threshold:.2f}, the {level} false-alarm level of the "
             f"stage).{also}</p>"
         )
+    # readings and targets to 10 digits, with the difference z is about in its own column:
+    # to 6 digits, a target and its prediction near 1000 mm printed alike (a report review)
     rows = [
-        (_num(q.reading), _num(q.target), _num(q.predicted), _num(q.std), f"{q.z:+.1f}")
+        (
+            f"{q.reading:.10g}",
+            f"{q.target:.10g}",
+            f"{q.predicted:.10g}",
+            f"{q.target - q.predicted:+.4g}",
+            f"{q.std:.4g}",
+            f"{q.z:+.1f}",
+        )
         for q in s.suspects
     ]
-    head = [f"{h} [{unit}]" for h in ("reading", "target", "predicted by the others", "u")]
-    head.append("z")
+    names = ("reading", "target", "predicted by the others", "target - predicted", "u")
+    head = [f"{h} [{unit}]" for h in names]
+    head.append("z = (target - predicted) / u")
     k = len(s.suspects)
     cap = " More points disagree than the screening takes out: the model is in doubt."
     noise = (
@@ -404,7 +456,7 @@ def _plan_section(model: CalibrationModel) -> list[str]:
     except CascalError as exc:
         return [*out, f"<p>No plan: {e(str(exc))}</p>"]
     plan = mp.plan
-    reach = ", ".join(f"[{_num(a)}, {_num(b)}]" for a, b in mp.reach)
+    reach = ", ".join(range_text(a, b) for a, b in mp.reach)  # (inward: a review)
     out.append(
         f"<p>{plan.positions.size} further reference measurements of stage 0, chosen one at a "
         f"time among the test-bed readings the reference points cover ({e(reach)} {e(unit)}), "

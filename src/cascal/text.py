@@ -63,6 +63,13 @@ def range_ends(lo: float, hi: float, digits: int = 9) -> tuple[str, str]:
     raise AssertionError("unreachable")  # pragma: no cover
 
 
+def outward_ends(lo: float, hi: float, digits: int = 6) -> tuple[str, str]:
+    """``lo`` and ``hi`` to ``digits`` significant digits, rounded outward: a stretch the
+    reference could not measure is printed covering all of it (a report review found one
+    printed shrunk at both ends)."""
+    return _inward(lo, digits, ROUND_FLOOR), _inward(hi, digits, ROUND_CEILING)
+
+
 def reading_in_range(v: float, lo: float, hi: float, digits: int = 9) -> str:
     """A reading ``v`` of the range ``[lo, hi]`` to ``digits`` digits, kept within the
     range as :func:`range_text` prints it (a reading at an end is printed as that end: a
@@ -114,10 +121,10 @@ def measured_ends(arc: tuple[float, float]) -> tuple[str, str]:
 def hyperparameter_unit(name: str, unit: str, periodic: bool) -> str:
     """The unit of a hyperparameter, with a leading space (empty where dimensionless): a
     length scale and a period in ``unit`` (the periodic kernel's length scale is relative
-    to its period), variances in ``unit`` squared."""
+    to its period), an offset in ``unit``, variances in ``unit`` squared."""
     if name.endswith("length_scale"):
         return "" if periodic else f" {unit}"
-    if name.endswith("period"):
+    if name.endswith(("period", "offset")):  # (a report review: the offset had none)
         return f" {unit}"
     if name.endswith("variance"):
         return f" {unit}\N{SUPERSCRIPT TWO}"

@@ -778,7 +778,8 @@ def plan_measurements(
     """Propose ``k`` further reference measurements of the model's stage 0 (the test bed).
 
     The target is, for a ``bayes`` model of two or more stages, stage 1's uncertainty over
-    its calibrated readings (stage 0's covariance is part of its noise); for a
+    its readings (stage 0's covariance is part of its noise; with three or more stages
+    stage 1 is not the device: the target stops there); for a
     ``homoscedastic`` one, stage 0's uncertainty at stage 1's test-bed readings; for a
     one-stage model, stage 0's uncertainty over ``where`` (default: its readings' span, one
     turn for a periodic model). Periodic models get their proposals on one turn.
@@ -835,10 +836,13 @@ def plan_measurements(
     upper = model.data[1].y
     if model.method == "bayes":
         x1 = model.data[1].x
-        measured = measured_arc(model)
+        device = len(model.data) == 2  # else stage 1 sits between the test bed and the device
+        measured = measured_arc(model) if device else None
         if period is None:
             grid = np.linspace(float(x1.min()), float(x1.max()), _PLAN_TARGET)
             span1 = f"range {range_text(float(grid[0]), float(grid[-1]))} {unit}"
+            if not device:  # (a report review: its span was called the calibrated range)
+                span1 = f"readings' range {range_text(float(grid[0]), float(grid[-1]))} {unit}"
         elif measured is None:
             grid = np.linspace(0.0, period, _PLAN_TARGET, endpoint=False)
             span1 = f"full turn (period {period:g})"
@@ -850,6 +854,11 @@ def plan_measurements(
             testbed, candidates, k, lower=target, noise_variance=s2, progress=progress
         )
         what = f"stage 1 ({name})'s uncertainty over its calibrated {span1}"
+        if not device:
+            what = (
+                f"stage 1 ({name})'s uncertainty over its {span1} (of {len(model.data)} "
+                "stages, the one below the test bed; not the device's, further down)"
+            )
         return MeasurementPlan(plan, intervals, candidates.size, what, name)
     plan = plan_reference(testbed, candidates, k, where=upper, noise_variance=s2, progress=progress)
     what = f"stage 0's uncertainty at the test-bed readings of stage 1 ({name})"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import re
 import sys
@@ -61,6 +62,24 @@ def test_fleet_summary(fleet):
         assert r["points"] == "100"
     assert "oops" in rows[3]["error"] and rows[3]["model"] == ""
     assert [r["warnings"] for r in rows] == ["", "", "", ""]  # (the error is not repeated)
+    assert [r["unit"] for r in rows] == ["m", "m", "m", ""]  # (a review: no unit column)
+    assert [r["arc_left_out"] for r in rows] == ["", "", "", ""]
+
+
+def test_a_rotary_device_row_names_the_arc_its_readings_leave_out():
+    """A report review's case: a rotary device measured from 300 over 0 to 60 deg read
+    range 0.02 to 357.29 in the summary, as if measured over almost the whole turn; the
+    arc its readings leave out is a column now (rounded outward), beside the unit."""
+    from cascal.cli import _fleet_csv
+    from cascal.workflow import DeviceResult
+
+    turn = DeviceResult(
+        "enc7", "enc7.csv", model="enc7.json", rms_correction=1e-3, max_u=1e-5,
+        calibrated_range=(0.02, 357.292636711), points=40, arc=(59.9912345678, 299.99),
+    )  # fmt: skip
+    (row,) = list(csv.DictReader(io.StringIO(_fleet_csv([turn], {}, "deg"))))
+    assert row["unit"] == "deg" and row["arc_left_out"] == "59.9912345 to 299.99"
+    assert row["range_lo"] == "0.02" and row["status"] == "ok"
 
 
 def test_device_model_equals_a_plain_fit_of_both_stages(fleet):

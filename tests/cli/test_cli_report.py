@@ -39,6 +39,25 @@ def test_report_is_self_contained(report):
         assert words in text
 
 
+def test_report_names_the_model_file_it_describes(report, linear_model):
+    """A report review: a report named its model file by its base name alone, so two fits'
+    reports could not be told apart by an auditor. It shows the content checksum and the
+    file's SHA-256 that ``cascal info`` prints, the optimiser starts and the RMS
+    correction."""
+    import hashlib
+
+    text = report.read_text()
+    info = run_cascal("info", linear_model).stdout
+    checksum = re.search(r"content checksum \(sha256\) ([0-9a-f]{64})", info).group(1)
+    assert f"<td>content checksum (sha256)</td><td>{checksum}</td>" in text
+    digest = hashlib.sha256(linear_model.read_bytes()).hexdigest()
+    assert f"<td>SHA-256 of the file</td><td>{digest}</td>" in text
+    assert "optimiser starts per stage" in text
+    rms = re.search(r"RMS ([0-9.e+-]+) m", info).group(1)  # (info: 3 digits)
+    shown = re.search(r"RMS correction over the calibrated range: ([0-9.e+-]+) m", text)
+    assert f"{float(shown.group(1)):.3g}" == rms
+
+
 def test_report_plan_is_the_commands(report, linear_model):
     """The report's plan is ``cascal plan``'s default one; a lut model's report has none."""
     from cascal.io.modelfile import load_model
