@@ -70,6 +70,11 @@ def test_change_draws_the_max_change_and_breaks_between_two_stretches():
     (change,) = _lines(ax, "change of the correction")
     x = np.asarray(change.get_xdata())
     assert np.isnan(x[30]) and x.size == 81 and np.all(np.isfinite(np.delete(x, 30)))
+    # a report review: the stretches beyond the band were labelled "beyond it", beside the
+    # max change's line
+    far = compare(r, r, u, r + 2e-3 * np.sin(r / 20.0), u, period=360.0)
+    ax = plot_change(far, scale=3600.0, unit="arcsec", limit=1e-4).axes[0]
+    assert len(_lines(ax, "beyond the band")) == 1 and not _lines(ax, "beyond it")
     ok = plot_change(c, scale=3600.0, unit="arcsec", limit=1e-3).axes[0]
     assert "within the max change" in ok.get_title()
     far = plot_change(c, scale=3600.0, unit="arcsec", limit=1.0).axes[0]  # 3600 arcsec

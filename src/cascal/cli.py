@@ -436,8 +436,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     from .io.atomic import write_text
     from .io.modelfile import save_model
     from .pool import MAX_WORKERS
-    from .text import turn_text
-    from .workflow import fit_devices, fit_findings, fit_model, screen_stages
+    from .text import HOMOSCEDASTIC_U, turn_text
+    from .workflow import fit_devices, fit_findings, fit_model, model_path, screen_stages
 
     check_output(args.output, folder=True)
     folder = Path(args.devices)
@@ -480,15 +480,48 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     )
     (testbed,) = _read_stages([args.testbed], args, skip[:1], columns=(tb_x, tb_y))
     tb = fit_model([testbed], **_fit_kwargs(args))
-    tb_model = save_model(tb_path, tb)
-    print(f"Test bed fitted once: {tb_model}")
-    report_findings("fit-devices", fit_findings(tb), [tb.sources[0].file], tb.unit)
-    level = None if args.no_screening else _level(args)
-    if level is None:
-        print(SKIPPED)
-    else:
-        checks = screen_stages(tb, [testbed], level=level)
-        report_screening("fit-devices", checks, tb.unit, " of the test bed")
+    notes: dict[str, list[str]] = {}  # each device's warnings, for the summary too
+    finished = []  # as reported: an interrupted fleet's summary lists these
+
+    def interrupted(exc: KeyboardInterrupt) -> None:
+        """Summarise the devices done, list every other as not fitted, keeping no model of
+        an earlier run (a review: those never started were left out, their old models
+        beside the summary; a second: a new testbed.json beside the old devices' models,
+        interrupted before the first device), say so and raise ``exc`` again."""
+        from .pool import Terminated
+        from .workflow import INTERRUPTED, DeviceResult, discard_model, model_path
+
+        n_done = sum(r.error != INTERRUPTED for r in finished)  # (a review: the rest counted)
+        fitted = {r.device for r in finished}
+        for f in files:
+            if f.stem not in fitted:
+                discard_model(model_path(out / "devices", f))
+                finished.append(DeviceResult(f.stem, str(f), error=INTERRUPTED))
+        order = {f.stem: k for k, f in enumerate(files)}  # file order, as a finished run's
+        finished.sort(key=lambda r: order.get(r.device, len(order)))
+        path = write_text(summary_path, _fleet_csv(finished, notes, tb.unit))
+        what = "terminated" if isinstance(exc, Terminated) else "interrupted"
+        warn("fit-devices", f"{what} after {n_done} of {len(files)} devices: {path}")
+        raise exc
+
+    every: list[str] = []  # cautions of every device's u, in each one's summary row too
+    try:
+        tb_model = save_model(tb_path, tb)
+        print(f"Test bed fitted once: {tb_model}")
+        with _collected(every):  # (a review: no row carried the test bed's)
+            report_findings("fit-devices", fit_findings(tb), [tb.sources[0].file], tb.unit)
+        every[:] = [f"test bed: {line}" for line in every]
+        if args.method == "homoscedastic":  # (a review: fit gave it, fit-devices not)
+            warn("fit-devices", HOMOSCEDASTIC_U)
+            every.append(HOMOSCEDASTIC_U)
+        level = None if args.no_screening else _level(args)
+        if level is None:
+            print(SKIPPED)
+        else:
+            checks = screen_stages(tb, [testbed], level=level)
+            report_screening("fit-devices", checks, tb.unit, " of the test bed")
+    except KeyboardInterrupt as exc:
+        interrupted(exc)
     options = dict(
         _fit_kwargs(args),
         x_column=dev_x,
@@ -498,13 +531,13 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     )
 
     t0, done = time.perf_counter(), [0]
-    notes: dict[str, list[str]] = {}  # each device's warnings, for the summary too
-
-    finished = []  # as reported: an interrupted fleet's summary lists these
 
     def report(r) -> None:
         finished.append(r)  # first: an interrupt while its lines print keeps it summarised
-        with _collected(notes.setdefault(r.device, [])):
+        into = notes.setdefault(r.device, [])
+        if not r.error:
+            into += every
+        with _collected(into):
             _report_device(r)
 
     def _report_device(r) -> None:
@@ -541,20 +574,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             tb_model, files, out / "devices", options=options, jobs=jobs, on_result=report
         )
     except KeyboardInterrupt as exc:  # the summary of this run's devices so far
-        from .pool import Terminated
-        from .workflow import INTERRUPTED, DeviceResult, discard_model, model_path
-
-        # every device not fitted is listed so, and keeps no model of an earlier run (a
-        # review: those never started were left out, their old models beside the summary)
-        fitted = {r.device for r in finished}
-        for f in files:
-            if f.stem not in fitted:
-                discard_model(model_path(out / "devices", f))
-                finished.append(DeviceResult(f.stem, str(f), error=INTERRUPTED))
-        path = write_text(summary_path, _fleet_csv(finished, notes, tb.unit))
-        what = "terminated" if isinstance(exc, Terminated) else "interrupted"
-        warn("fit-devices", f"{what} after {len(finished)} of {len(files)} devices: {path}")
-        raise
+        interrupted(exc)
     summary = write_text(summary_path, _fleet_csv(results, notes, tb.unit))
     n_bad = sum(r.error is not None for r in results)
     n_sus = sum(bool(r.screening and r.screening.rows) for r in results)
@@ -564,9 +584,15 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             "suspect rows (column suspect_rows of the summary)"
         )
     print(f"{len(results) - n_bad} of {len(results)} devices calibrated; summary: {summary}")
-    current = {f.stem.casefold() for f in files}
+    # a model is current where it is a device's model file: by name, or, on a file system
+    # that ignores case, the same file (a review: dev01.json beside DEV01.json, from a file
+    # renamed by case, had gone unnamed)
+    models = [model_path(out / "devices", f) for f in files]
+    names = {m.name for m in models}
     stale = sorted(
-        p.name for p in (out / "devices").glob("*.json") if p.stem.casefold() not in current
+        p.name
+        for p in (out / "devices").glob("*.json")
+        if p.name not in names and not any(same_file(p, m) for m in models)
     )
     if stale:  # an earlier run's devices: kept, but no longer in the summary
         warn(

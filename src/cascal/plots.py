@@ -451,7 +451,8 @@ def plot_change(
         title += f"; {verdict} the max change"
     if band is not None and beyond is not None:
         if np.any(np.isfinite(beyond)):
-            ax.plot(r, beyond, "-", color="C3", lw=2, label="beyond it")
+            # (a review: "beyond it", next to the max change, read as beyond that)
+            ax.plot(r, beyond, "-", color="C3", lw=2, label="beyond the band")
         title += f"; beyond the band over {100 * s['share_beyond_band']:.1f} % of the range"
     ax.set_xlabel(f"device reading [{xunit}]")
     ax.set_ylabel(f"change of correction [{unit}]")

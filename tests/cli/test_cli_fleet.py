@@ -338,8 +338,12 @@ def _check_interrupted(out, err) -> None:
     assert "Traceback" not in err and "interrupted after " in err
     with open(out / "fleet_summary.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    assert sorted(r["device"] for r in rows) == [f"d{k:02d}" for k in range(16)]
+    # in file order, as a finished fleet's (a review: in the order they completed)
+    assert [r["device"] for r in rows] == [f"d{k:02d}" for k in range(16)]
     ok = [r["device"] for r in rows if r["status"] == "ok"]
+    done = sum(r["error"] != "not fitted: the fleet was interrupted" for r in rows)
+    (said,) = re.findall(r"interrupted after (\d+) of 16 devices", err)
+    assert int(said) == done  # (a review: it said 16 of 16, those not fitted counted)
     models = sorted(p.stem for p in (out / "devices").glob("*.json"))
     assert 1 <= len(models) < 16 and models == sorted(ok)  # those under way finished too
     assert len({r["device"] for r in rows}) == len(rows)
@@ -468,3 +472,60 @@ def test_a_device_file_that_is_a_dangling_link_is_reported(fleet, tmp_path):
     assert "skipped device b: " in res.stderr and "cannot read the file" in res.stderr
     rows = (tmp_path / "out" / "fleet_summary.csv").read_text().splitlines()
     assert rows[2].startswith("b,error,")
+
+
+def test_an_interrupt_before_the_first_device_keeps_no_model_of_the_old_test_bed(
+    fleet, tmp_path, monkeypatch, capsys
+):
+    """A review's case: Ctrl-C after the new testbed.json was written (the test bed's
+    screening) but before the first device left the earlier run's device models and its
+    summary, all "ok", beside it. Every device is listed as not fitted now, and keeps no
+    model of the earlier run."""
+    import shutil
+
+    from cascal import workflow
+    from cascal.cli import main
+
+    _, tb, folder, out, _ = fleet
+    again = tmp_path / "again"
+    shutil.copytree(out, again)
+    assert len(list((again / "devices").glob("*.json"))) == 3
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(workflow, "screen_stages", stop)
+    code = main(["fit-devices", str(tb), "--devices", str(folder), "-o", str(again),
+                 "--restarts", "2"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 130 and "interrupted after 0 of 4 devices" in err
+    assert list((again / "devices").glob("*.json")) == []
+    with open(again / "fleet_summary.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["status"] for r in rows] == ["error"] * 4
+    assert {r["error"] for r in rows} == {"not fitted: the fleet was interrupted"}
+
+
+def test_cautions_of_every_device_are_in_each_row_and_a_renamed_file_s_old_model_named(
+    fleet, tmp_path
+):
+    """A review's cases: a test bed's caution (u in doubt) and the homoscedastic method's
+    were printed once or not at all, and no row of the summary carried them; a device file
+    renamed by case only left its old model (dev01.json beside DEV01.json) unnamed."""
+    _, _, folder, _, _ = fleet
+    devices = tmp_path / "devices"
+    devices.mkdir()
+    (devices / "DEVICE01.csv").write_text((folder / "device01.csv").read_text())
+    weak = tmp_path / "weak.csv"  # three reference positions: the fit warns u is in doubt
+    weak.write_text("testbed,reference\n-0.2,-0.199\n0.5,0.502\n1.2,1.199\n")
+    out = tmp_path / "out"
+    (out / "devices").mkdir(parents=True)
+    (out / "devices" / "device01.json").write_text("{}")  # the file's earlier name's model
+    res = run_cascal("fit-devices", weak, "--devices", devices, "-o", out, "--restarts", "2",
+                     "--method", "homoscedastic", "--no-screening")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "covered 66 % of the errors" in res.stderr
+    with open(out / "fleet_summary.csv", newline="") as fh:
+        (row,) = list(csv.DictReader(fh))
+    assert "test bed: " in row["warnings"] and "covered 66 % of the errors" in row["warnings"]
+    assert "1 model(s) of devices with no file" in res.stderr and "(device01.json)" in res.stderr
