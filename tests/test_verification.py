@@ -198,3 +198,23 @@ def test_verify_model_refuses_a_missing_reference_value():
         verify_model(model, r, reference)
     with pytest.raises(InputError, match="expected the same length, got 20 and 19"):
         verify_model(model, r, reference[:-1])
+
+
+def test_a_point_exactly_at_the_mpe_conforms_whatever_its_binary_round_off():
+    """A numerical review's cases: five points whose |error| + 2 u_reference equals the MPE
+    in decimals; two failed, as their subtraction rounded up in binary. They all conform
+    now (the limit belongs to the zone), and one a micrometre beyond it does not."""
+    from decimal import Decimal
+
+    cases = [("0.5", "0.49997", "0.000035"), ("0.5", "0.49990", "0"),
+             ("0.3", "0.29993", "0.000015"), ("0.7", "0.70006", "0.00002"),
+             ("0.1", "0.1001", "0")]  # fmt: skip
+    for corrected, reference, u_ref in cases:
+        exact = abs(Decimal(corrected) - Decimal(reference)) + 2 * Decimal(u_ref)
+        assert exact == Decimal("0.0001")
+        c, r = np.array([float(corrected)]), np.array([float(reference)])
+        v = verify(c, r, c, np.array([1e-5]), u_reference=float(u_ref), mpe=1e-4)
+        assert v.conforms.tolist() == [True], (corrected, reference, v.error)
+        beyond = verify(c, r - 1e-6, c, np.array([1e-5]), u_reference=float(u_ref), mpe=1e-4)
+        beyond_other = verify(c, r + 1e-6, c, np.array([1e-5]), u_reference=float(u_ref), mpe=1e-4)
+        assert not (beyond.conforms[0] and beyond_other.conforms[0])

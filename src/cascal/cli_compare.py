@@ -69,8 +69,10 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         names = (file_label(args.old, "a model"), file_label(args.new, "a model"))
         fig = comparison_figure(old, c, names, limit=args.max_change)
     if c.has_u:
-        how = (
+        how = (  # (a review: with three stages the stages they share are more than the test bed)
             "the test bed's calibration both share counted once"
+            if c.shared and len(old.fitted.models) <= 2
+            else "the upstream calibrations both share counted once"
             if c.shared
             else "their upstream calibrations counted as independent"
             if len(old.fitted.models) > 1
