@@ -448,13 +448,14 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         raise InputError(f"-o {args.output}: the same folder as --devices; give another")
     # a link to a file that is gone (a share not mounted) is a device that cannot be read,
     # reported as such (a review: it had been left out without a word)
-    files = sorted(
-        p
-        for p in folder.iterdir()
-        if p.suffix.lower() == ".csv" and (p.is_file() or not p.exists())
-    )
+    entries = [p for p in folder.iterdir() if p.suffix.lower() == ".csv"]
+    files = sorted(p for p in entries if p.is_file() or not p.exists())
+    # a folder or a pipe named *.csv: reported as a device skipped, never read (a pipe
+    # would wait for a writer; a review found them left out without a word)
+    odd = sorted(p for p in entries if p.exists() and not p.is_file())
     if not files:
-        raise InputError(f"no .csv device files in folder {folder}")
+        named = "".join(f"; {p.name} is {_not_a_file(p)}" for p in odd[:3])
+        raise InputError(f"no .csv device files in folder {folder}{named}")
     stems: dict[str, Path] = {}
     for f in files:  # each device's model is <stem>.json
         other = stems.setdefault(f.stem.casefold(), f)
@@ -497,8 +498,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             if f.stem not in fitted:
                 discard_model(model_path(out / "devices", f))
                 finished.append(DeviceResult(f.stem, str(f), error=INTERRUPTED))
-        order = {f.stem: k for k, f in enumerate(files)}  # file order, as a finished run's
-        finished.sort(key=lambda r: order.get(r.device, len(order)))
+        finished.extend(DeviceResult(p.stem, str(p), error=f"{p} is {_not_a_file(p)}") for p in odd)
+        finished.sort(key=lambda r: Path(r.file).name)  # file order, as a finished run's
         path = write_text(summary_path, _fleet_csv(finished, notes, tb.unit))
         what = "terminated" if isinstance(exc, Terminated) else "interrupted"
         warn("fit-devices", f"{what} after {n_done} of {len(files)} devices: {path}")
@@ -575,6 +576,12 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         )
     except KeyboardInterrupt as exc:  # the summary of this run's devices so far
         interrupted(exc)
+    from .workflow import DeviceResult
+
+    for p in odd:
+        warn("fit-devices", f"skipped device {p.stem}: {p} is {_not_a_file(p)}")
+    others = [DeviceResult(p.stem, str(p), error=f"{p} is {_not_a_file(p)}") for p in odd]
+    results = sorted([*results, *others], key=lambda r: Path(r.file).name)  # (file order)
     summary = write_text(summary_path, _fleet_csv(results, notes, tb.unit))
     n_bad = sum(r.error is not None for r in results)
     n_sus = sum(bool(r.screening and r.screening.rows) for r in results)
@@ -769,6 +776,11 @@ def model_lines(model) -> list[str]:
     span = f"full turn (period {model.period:g})" if model.periodic else range_text(lo, hi)
     arc = arc_text(model)
     return [*lines, f"Calibrated device range: {arc or f'{span} {model.unit}'}"]
+
+
+def _not_a_file(path: Path) -> str:
+    """What ``path``, which exists but is not a regular file, is, for a message."""
+    return "a folder, not a file" if path.is_dir() else "not a regular file (a pipe or a device)"
 
 
 def _fleet_csv(results, notes: dict[str, list[str]], unit: str) -> str:

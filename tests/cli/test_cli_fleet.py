@@ -529,3 +529,31 @@ def test_cautions_of_every_device_are_in_each_row_and_a_renamed_file_s_old_model
         (row,) = list(csv.DictReader(fh))
     assert "test bed: " in row["warnings"] and "covered 66 % of the errors" in row["warnings"]
     assert "1 model(s) of devices with no file" in res.stderr and "(device01.json)" in res.stderr
+
+
+def test_a_folder_or_a_pipe_named_like_a_device_file_is_reported(fleet, tmp_path):
+    """A review's case: a folder or a named pipe called ``*.csv`` among the device files was
+    left out without a word (and alone, "no .csv device files" for a folder that visibly
+    held x.csv). Each is a device skipped now, named in the summary, and never read."""
+    import os
+
+    _, tb, folder, _, _ = fleet
+    devices = tmp_path / "devices"
+    (devices / "folder.csv").mkdir(parents=True)
+    os.mkfifo(devices / "pipe.csv")
+    res = run_cascal("fit-devices", tb, "--devices", devices, "-o", tmp_path / "o")
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "no .csv device files in folder" in res.stderr
+    assert "folder.csv is a folder, not a file; pipe.csv is not a regular file" in res.stderr
+    (devices / "device01.csv").write_text((folder / "device01.csv").read_text())
+    res = run_cascal("fit-devices", tb, "--devices", devices, "-o", tmp_path / "o",
+                     "--restarts", "2", "--no-screening", timeout=120)  # fmt: skip
+    assert res.returncode == 1, res.stderr
+    assert "skipped device folder: " in res.stderr and "skipped device pipe: " in res.stderr
+    assert "1 of 3 devices calibrated" in res.stdout
+    with open(tmp_path / "o" / "fleet_summary.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["device"], r["status"]) for r in rows] == [
+        ("device01", "ok"), ("folder", "error"), ("pipe", "error"),
+    ]  # fmt: skip
+    assert rows[1]["error"].endswith("folder.csv is a folder, not a file")
