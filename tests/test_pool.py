@@ -211,3 +211,17 @@ def test_a_pool_manager_thread_s_failure_is_quiet_once_a_signal_stops_the_comman
     quiet(args(manager))  # stopping: dropped
     quiet(args(other))  # another thread: reported
     assert [a.thread for a in seen] == [manager, other]
+
+
+def test_the_default_number_of_workers_follows_the_cpus_this_process_may_use(monkeypatch):
+    """A fleet review's case: pinned to one CPU (taskset), fit-devices still started two
+    workers (os.cpu_count). The default is the process's CPU affinity now."""
+    from cascal.pool import MAX_WORKERS, default_workers
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {3}, raising=False)
+    assert default_workers() == 1
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(1000)), raising=False)
+    assert default_workers() == MAX_WORKERS
+    monkeypatch.delattr(os, "sched_getaffinity", raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: 6)
+    assert default_workers() == 6

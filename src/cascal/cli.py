@@ -435,7 +435,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     from .cli_screening import SKIPPED, report_findings, report_screening, screening_lines
     from .io.atomic import write_text
     from .io.modelfile import save_model
-    from .pool import MAX_WORKERS
+    from .pool import default_workers
     from .text import HOMOSCEDASTIC_U, turn_text
     from .workflow import fit_devices, fit_findings, fit_model, model_path, screen_stages
 
@@ -449,6 +449,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     # a link to a file that is gone (a share not mounted) is a device that cannot be read,
     # reported as such (a review: it had been left out without a word)
     entries = [p for p in folder.iterdir() if p.suffix.lower() == ".csv"]
+    hidden = sorted(p.name for p in entries if p.name.startswith("."))  # macOS's ._x.csv:
+    entries = [p for p in entries if not p.name.startswith(".")]  # no device (a review)
     files = sorted(p for p in entries if p.is_file() or not p.exists())
     # a folder or a pipe named *.csv: reported as a device skipped, never read (a pipe
     # would wait for a writer; a review found them left out without a word)
@@ -456,6 +458,13 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     if not files:
         named = "".join(f"; {p.name} is {_not_a_file(p)}" for p in odd[:3])
         raise InputError(f"no .csv device files in folder {folder}{named}")
+    if hidden:
+        more = ", ..." if len(hidden) > 3 else ""
+        warn(
+            "fit-devices",
+            f"--devices {folder}: {len(hidden)} hidden file(s) left out "
+            f"({', '.join(hidden[:3])}{more})",
+        )
     stems: dict[str, Path] = {}
     for f in files:  # each device's model is <stem>.json
         other = stems.setdefault(f.stem.casefold(), f)
@@ -554,9 +563,12 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         else:
             n_rows = len(r.screening.rows) if r.screening else 0
             suspect = f", {n_rows} suspect row{'s' * (n_rows > 1)}" if n_rows else ""
+            u = (  # (a review: "largest u nan m" for a lookup table)
+                f"largest u {r.max_u:.4g} {tb.unit}" if r.max_u == r.max_u else "no u (lut)"
+            )
             print(
                 f"  {where} {r.device}: rms correction {r.rms_correction:.4g} {tb.unit}, "
-                f"largest u {r.max_u:.4g} {tb.unit}{suspect}",
+                f"{u}{suspect}",
                 flush=True,
             )
             if r.arc is not None:  # (a review: a partly measured rotary device, in silence)
@@ -569,7 +581,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             if r.source is not None:
                 _report_chain("fit-devices", [tb.sources[0], r.source])
 
-    jobs = args.jobs or min(os.cpu_count() or 1, MAX_WORKERS)
+    jobs = args.jobs or default_workers()
     try:
         results = fit_devices(
             tb_model, files, out / "devices", options=options, jobs=jobs, on_result=report

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import multiprocessing
+import os
 import signal
 import threading
 from collections.abc import Callable, Iterable, Iterator
@@ -67,6 +68,17 @@ def _main_thread() -> bool:
 #: (a review: --workers 3000000000 crashed inside multiprocessing, and 100000 started one
 #: process per task).
 MAX_WORKERS = 256
+
+
+def default_workers() -> int:
+    """Worker processes by default: the CPUs this process may run on (its affinity, where
+    the OS tells it: a review's fleet pinned to one CPU started two), at most
+    :data:`MAX_WORKERS`."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # (not on every OS)
+        n = os.cpu_count() or 1
+    return max(1, min(n, MAX_WORKERS))
 
 
 def spawn_pool(n_workers: int, initializer: Callable[..., None], initargs: tuple = ()):

@@ -13,7 +13,6 @@ import csv
 import io
 import json
 import logging
-import multiprocessing
 import os
 import threading
 import time
@@ -38,6 +37,7 @@ from .montecarlo import StudyConfig, TrialResult, run_chunk, run_trial, summariz
 from .pool import (
     MAX_WORKERS,
     completed,
+    default_workers,
     deferred_signals,
     ignore_interrupts,
     raise_signals,
@@ -147,7 +147,7 @@ def _run_study(
         pending = sorted(set(range(trials)) - {r.index for r in before})
         if pending:
             _check_same_numbers(config, before[0] if before else None, folder)
-        n_workers = workers or min(multiprocessing.cpu_count(), MAX_WORKERS)
+        n_workers = workers or default_workers()
         size = chunk or max(1, min(50, len(pending) // (8 * n_workers) or 1))
         chunks = [pending[i : i + size] for i in range(0, len(pending), size)]
         done = trials - len(pending)

@@ -557,3 +557,19 @@ def test_a_folder_or_a_pipe_named_like_a_device_file_is_reported(fleet, tmp_path
         ("device01", "ok"), ("folder", "error"), ("pipe", "error"),
     ]  # fmt: skip
     assert rows[1]["error"].endswith("folder.csv is a folder, not a file")
+
+
+def test_a_lookup_table_fleet_says_it_has_no_u_and_hidden_files_are_left_out(fleet, tmp_path):
+    """A review's cases: each device's line of a lut fleet read "largest u nan m", and a
+    macOS ``._device01.csv`` beside the device files was fitted as a device (and failed)."""
+    _, tb, folder, _, _ = fleet
+    devices = tmp_path / "devices"
+    devices.mkdir()
+    (devices / "device01.csv").write_text((folder / "device01.csv").read_text())
+    (devices / "._device01.csv").write_bytes(b"\x00\x05\x16\x07 AppleDouble")
+    res = run_cascal("fit-devices", tb, "--devices", devices, "-o", tmp_path / "o",
+                     "--method", "lut", "--no-screening")  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "no u (lut)" in res.stdout and "nan" not in res.stdout
+    assert "1 hidden file(s) left out (._device01.csv)" in res.stderr
+    assert "1 of 1 devices calibrated" in res.stdout
