@@ -221,3 +221,19 @@ def test_the_cascade_figure_draws_stage_0_wherever_stage_1_reads_it():
     assert np.min(mean1.get_xdata()) == trial.d1[0].min()
     (own,) = _lines(plot_cascade(fitted).axes[0], "stage 0: mean")  # without: its readings
     assert np.min(own.get_xdata()) == trial.d2[0].min()
+
+
+def test_a_long_file_name_in_a_title_is_wrapped():
+    """A report review's case: a stage file of 200 characters ran off both sides of its
+    figure's title. Titles wrap at TITLE_WIDTH characters, a long name broken."""
+    from matplotlib.figure import Figure
+
+    from cascal.plots import TITLE_WIDTH, set_title
+
+    ax = Figure().subplots()
+    name = "run_" + "x" * 196 + ".csv"
+    set_title(ax, f"{name}: more accurate reading minus reading\nsecond line")
+    lines = ax.get_title().split("\n")
+    assert len(lines) >= 4 and max(map(len, lines)) <= TITLE_WIDTH
+    assert "".join(lines[:-1]).replace(" ", "") == f"{name}:moreaccuratereadingminusreading"
+    assert lines[-1] == "second line"

@@ -48,7 +48,8 @@ def test_uncertainties_are_also_given_in_the_figures_unit():
     u = float(np.max(correction_curve(model).u))
     assert f"Largest u over the calibrated range: {u:.6g} m ({u * 1e6:.3g} µm)." in html
     assert "RMS u after [µm]" in html and "largest u after [µm]" in html
-    sd = re.search(r"standard deviation of ([-+.e\d]+) m \(([.\d]+) µm\)", html)
+    sd = re.search(r"\(standard deviation ([-+.e\d]+) m \(([.\d]+) µm\)\)", html)
+    assert "each as precise as the average existing point, repeated readings" in html
     assert sd and float(sd[2]) == float(f"{float(sd[1]) * 1e6:.3g}")
     ref, dev = demo_stages(rotary_demo(0))
     rotary = fit_model([ref, dev], kernel="periodic", period=360.0, unit="deg", n_restarts=1)

@@ -38,6 +38,19 @@ _STYLE = {"text.parse_math": False, "axes.formatter.useoffset": False}
 F = TypeVar("F", bound=Callable)
 
 
+#: Characters per line of a figure's title at its font size (9 pt on an 8 in figure).
+TITLE_WIDTH = 110
+
+
+def set_title(ax, text: str) -> None:
+    """``ax``'s title at 9 pt, each line wrapped at :data:`TITLE_WIDTH` characters (a long
+    file name breaks, where a review found it running off both sides of the figure)."""
+    import textwrap
+
+    lines = [textwrap.fill(line, TITLE_WIDTH, break_on_hyphens=False) for line in text.split("\n")]
+    ax.set_title("\n".join(lines), fontsize=9)
+
+
 def figure_style(draw: F) -> F:
     """Decorator: ``draw`` makes its text and axes in cascal's figure style (:data:`_STYLE`)."""
 
@@ -185,7 +198,7 @@ def plot_cascade(
                 label = "reference could not measure" if j == 0 else None
                 ax.axvspan(a, b, color="0.55", alpha=0.2, lw=0, hatch="//", label=label)
             ax.legend(fontsize=7, loc="best")
-        ax.set_title(f"stage {k} ({fitted.stages[k].name}), method {fitted.method}", fontsize=9)
+        set_title(ax, f"stage {k} ({fitted.stages[k].name}), method {fitted.method}")
     return fig
 
 
@@ -310,7 +323,7 @@ def plot_plan(
         bx.set_ylim(0, None)
         bx.set_xlabel(f"{lower_name} reading [{xunit}]")
         bx.set_ylabel(f"standard uncertainty [{unit}]")
-        bx.set_title(f"the target: {lower_name}'s uncertainty over its readings", fontsize=9)
+        set_title(bx, f"the target: {lower_name}'s uncertainty over its readings")
         if period is not None:
             bx.set_xlim(*limits)  # the same turn as above
         bx.legend(fontsize=7, loc="best")
@@ -389,7 +402,7 @@ def plot_verification(
     ax.set_ylabel(f"corrected - reference [{unit}]")
     lines = [] if names is None else [f"{names[1]} against {names[0]}"]
     lines += [title, "; ".join(verdict)] if verdict else [title]
-    ax.set_title("\n".join(lines), fontsize=9)
+    set_title(ax, "\n".join(lines))
     fig.legend(fontsize=7, loc="outside lower center", ncol=5, frameon=False)
     return fig
 
@@ -456,7 +469,7 @@ def plot_change(
         title += f"; beyond the band over {100 * s['share_beyond_band']:.1f} % of the range"
     ax.set_xlabel(f"device reading [{xunit}]")
     ax.set_ylabel(f"change of correction [{unit}]")
-    ax.set_title(f"{names[1]} - {names[0]}\n{title}", fontsize=9)
+    set_title(ax, f"{names[1]} - {names[0]}\n{title}")
     fig.legend(fontsize=7, loc="outside lower center", ncol=3, frameon=False)
     return fig
 

@@ -20,7 +20,7 @@ from .compensation import in_arc
 from .errors import CascalError
 from .gp import Z95
 from .io.modelfile import CalibrationModel
-from .plots import figure_style, plot_change, plot_plan, plot_verification
+from .plots import figure_style, plot_change, plot_plan, plot_verification, set_title
 from .reportdata import CurveView, StageView, correction_curve, stage_views
 from .screening import LEVEL, Screening
 from .text import (
@@ -98,7 +98,7 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
     _shade(ax, view.gaps, period, "reference could not measure")
     ax.set_ylabel(f"correction [{su}]")
     ax.legend(fontsize=7, loc="best")
-    ax.set_title(f"{view.name}: more accurate reading minus reading", fontsize=9)
+    set_title(ax, f"{view.name}: more accurate reading minus reading")
     if rx is None:
         ax.set_xlabel(f"reading [{unit}]")
         _seams(ax, period=period, grid=view.grid)
@@ -460,9 +460,10 @@ def _plan_section(model: CalibrationModel) -> list[str]:
     out.append(
         f"<p>{plan.positions.size} further reference measurements of stage 0, chosen one at a "
         f"time among the test-bed readings the reference points cover ({e(reach)} {e(unit)}), "
-        f"each where it most lowers {e(mp.target)}; each with a standard deviation of "
-        f"{e(_quantity(float(np.sqrt(plan.noise_variance)), unit))}. <code>cascal plan</code> "
-        "proposes more, or within other reach.</p>"
+        f"each where it most lowers {e(mp.target)}; each as precise as the average existing "
+        f"point, repeated readings averaged as there (standard deviation "
+        f"{e(_quantity(float(np.sqrt(plan.noise_variance)), unit))}). <code>cascal plan</code> "
+        "proposes more, within other reach, or for another precision (--noise-std).</p>"
     )
     f, shown = display_scale(unit, float(plan.u_max[0]))  # the figure's unit
     rows = [("now", "", _num(plan.u_rms[0] * f), _num(plan.u_max[0] * f))]
