@@ -260,12 +260,23 @@ def test_a_rotary_stage_figure_shows_every_reading_whatever_the_other_stages_con
     for view in stage_views(model):
         ax, rx = stage_figure(view, unit="deg", period=360.0).axes
         lo, hi = ax.get_xlim()
-        for axis in (ax, rx):
-            points = [ln for ln in axis.get_lines() if ln.get_linestyle() == "None"]
-            xs = np.concatenate([ln.get_xdata() for ln in points] or [np.empty(0)])
-            if axis is ax and view.target_sd is not None:  # (errorbar: its own container)
-                xs = np.concatenate([xs, axis.containers[0].lines[0].get_xdata()])
-            assert xs.size >= view.x.size and np.all((xs >= lo) & (xs <= hi))
+        data = ax.containers[0].lines[0] if view.target_sd is not None else _line(ax, "data")
+        for line in (data, _line(rx, "residual (target - fit)")):
+            xs = np.asarray(line.get_xdata())
+            assert np.all((xs >= lo) & (xs <= hi))
+            # every reading, and those within an eighth of a turn of a seam again beyond it
+            # (a review: the axis's margins had looked unmeasured)
+            near = np.mod(view.x - (lo + 45.0), 360.0)
+            assert xs.size == view.x.size + np.sum(near <= 45.0) + np.sum(near >= 315.0)
+            assert np.allclose(
+                np.sort(np.mod(np.unique(xs), 360.0)), np.unique(np.mod(view.x, 360.0))
+            )
+
+
+def _line(ax, label: str):
+    """The line of ``ax`` labelled ``label``."""
+    (line,) = [ln for ln in ax.get_lines() if ln.get_label() == label]
+    return line
 
 
 def test_the_prior_mean_offset_carries_its_unit():

@@ -85,12 +85,13 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
     fig = Figure(figsize=(8.0, 3.4 if table else 5.8), layout="constrained")
     ax, rx = (fig.subplots(), None) if table else fig.subplots(2, 1, sharex=True)
     corr = view.targets - view.x
-    x = _on_window(view.x, view.grid, period)  # the readings where the axis shows them
+    x, at = _drawn(view.x, view.grid, period)  # where the axis shows each reading (at: which)
+    corr = corr[at]
     f, su = display_scale(unit, float(np.max(np.abs(corr))) if corr.size else 0.0)
     ax.plot(view.grid, (view.mean - view.grid) * f, color="C0", lw=1.5, label="fit")
     if view.target_sd is not None:
         ax.errorbar(
-            x, corr * f, yerr=Z95 * view.target_sd * f, fmt=".", color="k", ms=3,
+            x, corr * f, yerr=Z95 * view.target_sd[at] * f, fmt=".", color="k", ms=3,
             elinewidth=0.6, label="targets (95 % known noise)",
         )  # fmt: skip
     else:
@@ -117,15 +118,15 @@ def stage_figure(view: StageView, *, unit: str, period: float | None = None) -> 
         )
     if view.residual_band is not None:
         order = np.argsort(x)
-        xb, b = x[order], view.residual_band[order] * fr
+        xb, b = x[order], view.residual_band[at][order] * fr
         rx.plot(xb, b, color="C2", lw=0.8, label="95 % of target noise")
         rx.plot(xb, -b, color="C2", lw=0.8)
     rx.axhline(0.0, color="0.3", lw=0.8)
-    rx.plot(x, view.residuals * fr, ".", color="C3", ms=4, label="residual (target - fit)")
-    sus = [q.index for q in view.screening.suspects] if view.screening else []
-    if sus:
+    rx.plot(x, view.residuals[at] * fr, ".", color="C3", ms=4, label="residual (target - fit)")
+    sus = np.isin(at, [q.index for q in view.screening.suspects] if view.screening else [])
+    if np.any(sus):
         rx.plot(
-            x[sus], view.residuals[sus] * fr, "o", mfc="none", mec="k", ms=9, mew=1.2,
+            x[sus], view.residuals[at][sus] * fr, "o", mfc="none", mec="k", ms=9, mew=1.2,
             label="suspect (outlier screening)",
         )  # fmt: skip
     _shade(rx, view.gaps, period, None)
@@ -177,13 +178,23 @@ def correction_figure(curve: CurveView, *, unit: str, period: float | None = Non
     return fig
 
 
-def _on_window(x: np.ndarray, grid: np.ndarray, period: float | None) -> np.ndarray:
-    """Readings ``x`` (n,) of a periodic stage moved by whole periods onto the turn its
-    figure shows (from an eighth of a period after ``grid``'s start); others as given."""
+def _drawn(x: np.ndarray, grid: np.ndarray, period: float | None):
+    """Where a figure draws readings ``x`` (n,), and which reading each is: ``(positions
+    (d,), indices (d,))``. A periodic stage's readings are moved by whole periods onto the
+    turn the figure shows (a review: those of another turn fell off the axis), and those
+    within an eighth of a period of its seams drawn again beyond them, where the axis goes
+    on (they had looked unmeasured there); others as given."""
+    index = np.arange(x.size)
     if period is None:
-        return x
+        return x, index
     origin = float(grid[0]) + period / 8
-    return origin + np.mod(x - origin, period)
+    on = origin + np.mod(x - origin, period)
+    copies = [on, on - period, on + period]
+    keep = [(c >= grid[0]) & (c <= grid[-1]) for c in copies]
+    return (
+        np.concatenate([c[k] for c, k in zip(copies, keep, strict=True)]),
+        np.concatenate([index[k] for k in keep]),
+    )
 
 
 def _measured(grid: np.ndarray, arc: tuple[float, float] | None, period: float | None):
