@@ -390,6 +390,19 @@ def test_text_or_bools_among_numbers_are_refused():
         with pytest.raises(InputError, match="r: expected numbers, got bools"):
             as_positions(flags, "r")
     assert as_positions([0.5, np.float32(1.0), 2], "r").tolist() == [0.5, 1.0, 2.0]
+
+    class Column:  # an array-like, as a pandas Series is: its dtype tells
+        def __init__(self, values):
+            self.values = np.asarray(values)
+
+        def __array__(self, dtype=None, copy=None):
+            return self.values if dtype is None else self.values.astype(dtype)
+
+    with pytest.raises(InputError, match="r: expected numbers, got bools"):
+        as_positions(Column([True, False]), "r")
+    with pytest.raises(InputError, match="r: expected numbers, got text"):
+        as_positions(Column(np.array(["0.5", "1.0"], dtype=object)), "r")
+    assert as_positions(Column([0.5, 1.5]), "r").tolist() == [0.5, 1.5]
     fitted = fit_gp(np.linspace(0.0, 1.0, 8), np.linspace(0.0, 1.0, 8) + 1e-3, noise=1e-8)
     with pytest.raises(InputError, match="x: expected numbers, got bools"):
         fitted.predict([0.5, True])

@@ -83,6 +83,8 @@ def _element_kinds(a: object) -> set[str]:
     """Which of ``"text"`` and ``"bool"`` occur among the entries of an array or list
     ``a`` (a list's top level; an object array's every entry): NumPy reads both as numbers,
     ``"1.0"`` and ``True`` alike, also mixed with numbers."""
+    if not isinstance(a, np.ndarray | list | tuple) and hasattr(a, "__array__"):
+        a = np.asarray(a)  # (a pandas Series, say: its dtype tells)
     if isinstance(a, np.ndarray):  # (object arrays: an unconverted pandas column's)
         kind = a.dtype.kind
         if kind in "SU":
