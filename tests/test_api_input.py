@@ -403,6 +403,17 @@ def test_text_or_bools_among_numbers_are_refused():
     with pytest.raises(InputError, match="r: expected numbers, got text"):
         as_positions(Column(np.array(["0.5", "1.0"], dtype=object)), "r")
     assert as_positions(Column([0.5, 1.5]), "r").tolist() == [0.5, 1.5]
+    # a diff review's cases: a 0-d bool array as one reading, a deque and a memoryview
+    import collections
+
+    from cascal.validation import as_readings
+
+    with pytest.raises(InputError, match=r"r: expected numbers, got a bool \(array\(True\)\)"):
+        as_readings(np.array(True), "r")
+    for flags in (collections.deque([True, False]), memoryview(np.array([True, False]))):
+        with pytest.raises(InputError, match="r: expected numbers, got bools"):
+            as_readings(flags, "r")
+    assert as_readings(collections.deque([0.5, 1.0]), "r")[0].tolist() == [0.5, 1.0]
     fitted = fit_gp(np.linspace(0.0, 1.0, 8), np.linspace(0.0, 1.0, 8) + 1e-3, noise=1e-8)
     with pytest.raises(InputError, match="x: expected numbers, got bools"):
         fitted.predict([0.5, True])

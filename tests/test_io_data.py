@@ -435,6 +435,11 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
         # was taken for a second header row (row 1 named, "delete row 2" advised)
         ("testbed,reference\n0.098,ERR\n0.5,0.5\n", "row 2, column 'reference': expected a"),
         ("testbed,reference\nn/a,0.1\n0.5,0.5\n", "row 2, column 'testbed': expected a num"),
+        # a diff review's cases: a header with a number for a column's name under a comment,
+        # and a comment above a header above such a first data row, are still named
+        ("# laser run 7\ntestbed,1\n0.1,0.1\n0.5,0.5\n", "the header looks like row 2"),
+        ("Calibration 2024-05-01\ntestbed,2024\n0.1,0.1\n", "the header looks like row 2"),
+        ("# run 7\ntestbed,reference\n0.098,ERR\n0.5,0.5\n", "the header looks like row 2"),
     ],
     ids=[
         "decimal_comma",
@@ -456,6 +461,9 @@ def test_a_step_back_names_both_columns_as_possible_culprits(tmp_path):
         "typo_in_first_row_of_one_column",
         "word_beside_a_number_in_the_first_row",
         "word_then_a_number_in_the_first_row",
+        "comment_above_a_header_with_a_number",
+        "title_above_a_header_with_a_year",
+        "comment_above_a_header_above_a_word_in_the_first_row",
     ],
 )
 def test_spreadsheet_habits_get_a_hint(tmp_path, text, hint):

@@ -298,6 +298,7 @@ def test_a_lookup_table_stage_says_it_was_not_screened():
     model = fit_model(demo_stages(rotary_demo(0))[:1], method="lut", unit="deg")
     page = build_report(model)
     assert "Outlier screening does not apply (no noise model)" in page
+    assert "optimiser starts" not in page  # (a diff review: a table has no optimiser)
 
 
 def test_a_suspect_is_shown_with_the_digits_its_discrepancy_needs():
@@ -322,3 +323,27 @@ def test_a_suspect_is_shown_with_the_digits_its_discrepancy_needs():
     assert float(diff) == pytest.approx(float(target) - float(predicted), rel=1e-3, abs=2e-9)
     assert float(z) == pytest.approx(float(diff) / float(u), rel=2e-3, abs=0.06)
     assert float(z) > 10.0
+
+
+def test_the_plan_says_where_its_precision_is_the_planner_s_floor(tmp_path):
+    """A diff review's case: with a test bed read to 1e-9 m, the plan's measurements were
+    called as precise as the average existing point, while their standard deviation was
+    the planner's floor (253 nm against 0.8 nm)."""
+    from cascal.io.data import read_stage
+    from cascal.planning import default_noise_variance
+
+    rng = np.random.default_rng(0)
+    x = np.linspace(0, 1, 30)
+    y = x + 1e-3 * np.sin(5 * x) + 1e-9 * rng.standard_normal(30)
+    d = np.linspace(0.05, 0.95, 25)
+    t = d + 2e-3 * np.cos(4 * d) + 1e-6 * rng.standard_normal(25)
+    for name, head, a, b in (("tb", "testbed,reference", x, y), ("d", "device,testbed", d, t)):
+        rows = "".join(f"{float(u)!r},{float(v)!r}\n" for u, v in zip(a, b, strict=True))
+        (tmp_path / f"{name}.csv").write_text(f"{head}\n{rows}")
+    stages = [read_stage(tmp_path / "tb.csv"), read_stage(tmp_path / "d.csv")]
+    model = fit_model(stages, n_restarts=1)
+    page = build_report(model)
+    average = float(np.sqrt(default_noise_variance(model.fitted.models[0])))
+    assert average < 1e-8 and "as precise as the average existing point" not in page
+    floor = "the planner's floor (1e-08 of stage 0's prior variance), above the average"
+    assert html.escape(floor) in page

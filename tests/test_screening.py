@@ -310,3 +310,21 @@ def test_two_bad_positions_do_not_hide_each_other():
     assert found_all == 20 and capped_all == 20
     clean = _repeats(np.random.default_rng(0), positions=10, c=3)
     assert repeats_screening(*clean) == ((), False)
+
+
+def test_screening_a_stage_that_needed_jitter_warns_of_nothing_the_user_did_not_give():
+    """A diff review's case: outlier screening refits a stage with its own hyperparameters,
+    and since given hyperparameters warn where they needed jitter, screening a stage that
+    did warned again, at screening.py, of settings the user never gave."""
+    import warnings
+
+    from cascal import JitterWarning, fit_gp
+
+    x = np.linspace(0.0, 1.0, 40)
+    y = x + 1e-3 * np.sin(6.0 * x)
+    hp = {"length_scale": 0.2, "variance": 1e-4}
+    with pytest.warns(JitterWarning):
+        gp = fit_gp(x, y, noise=1e-20, learn_noise=False, hyperparameters=hp)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", JitterWarning)
+        screen(gp)

@@ -705,8 +705,10 @@ def test_worker_counts_beyond_the_cap_and_a_missing_dask_are_input_errors(tmp_pa
 def test_dasks_client_log_is_silenced_after_dask_is_imported():
     """A review's case: a lost cluster printed Dask's ERROR line before the study's own
     one line: the command had set that logger's level before importing Dask, whose import
-    set it again. In a fresh process (Dask not yet imported), a study on a cluster sets it
-    after, and restores Dask's own level when it ends."""
+    set it again. In a fresh process (Dask not yet imported), the context a study on a
+    cluster runs in (``run_study`` enters it for ``scheduler=``) sets it after the import,
+    and restores Dask's own level when it ends (a study through it:
+    ``test_a_cluster_without_workers_is_named_and_waited_for``)."""
     pytest.importorskip("distributed")
     script = (
         "import logging\n"

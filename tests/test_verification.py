@@ -215,6 +215,13 @@ def test_a_point_exactly_at_the_mpe_conforms_whatever_its_binary_round_off():
         c, r = np.array([float(corrected)]), np.array([float(reference)])
         v = verify(c, r, c, np.array([1e-5]), u_reference=float(u_ref), mpe=1e-4)
         assert v.conforms.tolist() == [True], (corrected, reference, v.error)
-        beyond = verify(c, r - 1e-6, c, np.array([1e-5]), u_reference=float(u_ref), mpe=1e-4)
-        beyond_other = verify(c, r + 1e-6, c, np.array([1e-5]), u_reference=float(u_ref), mpe=1e-4)
-        assert not (beyond.conforms[0] and beyond_other.conforms[0])
+        # a millionth of the MPE beyond the limit, outward: not (a diff review: the test had
+        # moved it by 1 % and accepted either direction)
+        out = np.sign(c - r) * 1e-10
+        beyond = verify(c + out, r, c + out, np.array([1e-5]), u_reference=float(u_ref), mpe=1e-4)
+        assert abs(beyond.error[0]) > abs(v.error[0]) and beyond.conforms.tolist() == [False]
+    # large readings against a tiny MPE: the allowance stays within 1e-9 of the MPE (a
+    # review: readings of 1e6 with an MPE of 1e-9 had conformed at 2.4 times it)
+    c, r = np.array([1e6 + 2.44e-9]), np.array([1e6])
+    v = verify(c, r, c, np.array([1e-12]), u_reference=0.0, mpe=1e-9)
+    assert v.error[0] > 2e-9 and v.conforms.tolist() == [False]

@@ -120,13 +120,7 @@ def check_output(
     os.close(fd)
     os.unlink(probe)
     if mode is not None and stat.S_ISREG(mode) and not folder:
-        # a write-protected file (no write bit for anyone, or none for this user) is not
-        # replaced: the rename would (a review's leftover), as `rm` asks first
-        if not mode & 0o222 or not os.access(p, os.W_OK):
-            raise InputError(
-                f"{option} {path}: the file is write-protected; not replaced (make it "
-                "writable, or choose another name)"
-            )
+        check_writable(p, f"{option} {path}")
 
 
 def file_label(path: str | Path, what: str = "a file") -> str:
@@ -137,6 +131,21 @@ def file_label(path: str | Path, what: str = "a file") -> str:
 
     p = Path(path)
     return shown(p.name) if p.is_file() else f"{what} read from a pipe"
+
+
+def check_writable(path: Path, what: str) -> None:
+    """Refuse (naming it ``what``) an existing file ``path`` that is write-protected: no
+    write bit for anyone, or none for this user. The atomic write's rename would replace
+    it, needing only the folder's permission (a review's leftover); `rm` asks first."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return
+    if stat.S_ISREG(mode) and (not mode & 0o222 or not os.access(path, os.W_OK)):
+        raise InputError(
+            f"{what}: the file is write-protected; not replaced (make it writable, or "
+            "choose another name)"
+        )
 
 
 def check_outputs(output: str | None, plot: str | None, inputs: Sequence[str | Path]) -> None:
@@ -455,16 +464,16 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     # a folder or a pipe named *.csv: reported as a device skipped, never read (a pipe
     # would wait for a writer; a review found them left out without a word)
     odd = sorted(p for p in entries if p.exists() and not p.is_file())
-    if not files:
+    left_out = f"{len(hidden)} hidden file(s) left out ({_listed(hidden)})" if hidden else ""
+    if not files:  # (what it holds named: a review)
         named = "".join(f"; {p.name} is {_not_a_file(p)}" for p in odd[:3])
+        named += f"; {left_out}" if left_out else ""
         raise InputError(f"no .csv device files in folder {folder}{named}")
     if hidden:
-        more = ", ..." if len(hidden) > 3 else ""
-        warn(
-            "fit-devices",
-            f"--devices {folder}: {len(hidden)} hidden file(s) left out "
-            f"({', '.join(hidden[:3])}{more})",
-        )
+        warn("fit-devices", f"--devices {folder}: {left_out}")
+    from .workflow import DeviceResult
+
+    others = [DeviceResult(p.stem, str(p), error=f"{p} is {_not_a_file(p)}") for p in odd]
     stems: dict[str, Path] = {}
     for f in files:  # each device's model is <stem>.json
         other = stems.setdefault(f.stem.casefold(), f)
@@ -477,6 +486,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     tb_path, summary_path = out / "testbed.json", out / "fleet_summary.csv"
     written = [tb_path, summary_path, *(out / "devices" / f"{f.stem}.json" for f in files)]
     for path in written:  # e.g. a test-bed file kept as <out>/testbed.json
+        check_writable(path, f"-o {args.output}: {path}")  # (a review: only -o files were)
         for other in (args.testbed, *files):
             if path.exists() and same_file(path, other):
                 raise InputError(
@@ -507,7 +517,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             if f.stem not in fitted:
                 discard_model(model_path(out / "devices", f))
                 finished.append(DeviceResult(f.stem, str(f), error=INTERRUPTED))
-        finished.extend(DeviceResult(p.stem, str(p), error=f"{p} is {_not_a_file(p)}") for p in odd)
+        finished.extend(others)
         finished.sort(key=lambda r: Path(r.file).name)  # file order, as a finished run's
         path = write_text(summary_path, _fleet_csv(finished, notes, tb.unit))
         what = "terminated" if isinstance(exc, Terminated) else "interrupted"
@@ -588,11 +598,8 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         )
     except KeyboardInterrupt as exc:  # the summary of this run's devices so far
         interrupted(exc)
-    from .workflow import DeviceResult
-
-    for p in odd:
-        warn("fit-devices", f"skipped device {p.stem}: {p} is {_not_a_file(p)}")
-    others = [DeviceResult(p.stem, str(p), error=f"{p} is {_not_a_file(p)}") for p in odd]
+    for r in others:
+        warn("fit-devices", f"skipped device {r.device}: {r.error}")
     results = sorted([*results, *others], key=lambda r: Path(r.file).name)  # (file order)
     summary = write_text(summary_path, _fleet_csv(results, notes, tb.unit))
     n_bad = sum(r.error is not None for r in results)
@@ -617,7 +624,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         warn(
             "fit-devices",
             f"{out / 'devices'}: {len(stale)} model(s) of devices with no file in {folder} now "
-            f"({', '.join(stale[:3])}{', ...' if len(stale) > 3 else ''}): left as they were, "
+            f"({_listed(stale)}): left as they were, "
             "not in the summary",
         )
     return EXIT_FAILURE if n_bad else 0
@@ -788,6 +795,11 @@ def model_lines(model) -> list[str]:
     span = f"full turn (period {model.period:g})" if model.periodic else range_text(lo, hi)
     arc = arc_text(model)
     return [*lines, f"Calibrated device range: {arc or f'{span} {model.unit}'}"]
+
+
+def _listed(names: Sequence[str]) -> str:
+    """The first three of ``names``, then ``...`` where there are more."""
+    return ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
 
 
 def _not_a_file(path: Path) -> str:
@@ -1167,7 +1179,10 @@ def _parser() -> argparse.ArgumentParser:
         help="folder for testbed.json, devices/*.json and fleet_summary.csv",
     )
     fd.add_argument(
-        "--jobs", type=worker_count, default=None, help="worker processes (default: CPU count)"
+        "--jobs",
+        type=worker_count,
+        default=None,
+        help="worker processes (default: the CPUs this process may use)",
     )
     _fit_options(fd, fleet=True)
     fd.set_defaults(func=_cmd_fit_devices)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
 __all__ = ["Progress", "add_study_parser"]
 
@@ -68,11 +69,13 @@ class Progress:
 
 
 def _cmd_study(args: argparse.Namespace) -> int:
-    from .cli import check_output
+    from .cli import check_output, check_writable
     from .montecarlo import StudyConfig
-    from .study import run_study
+    from .study import OUTPUTS, run_study
 
     check_output(args.out, folder=True, option="--out")
+    for name in OUTPUTS:  # (a review: a write-protected output was replaced)
+        check_writable(Path(args.out) / name, f"--out {args.out}: {name}")
     config = StudyConfig(seed=args.seed, n_restarts=args.restarts)
     progress = Progress()
     t0 = time.perf_counter()
@@ -137,7 +140,12 @@ def add_study_parser(sub) -> None:
     p.add_argument("--seed", type=seed, default=0, help="root seed (0)")
     p.add_argument("--restarts", type=restarts, default=3, help="optimiser starts (3)")
     where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=worker_count, default=None, help="processes (CPU count)")
+    where.add_argument(
+        "--workers",
+        type=worker_count,
+        default=None,
+        help="processes (default: the CPUs this process may use)",
+    )
     where.add_argument(
         "--scheduler", default=None, help="Dask scheduler address, e.g. tcp://h:8786"
     )

@@ -433,6 +433,28 @@ def fit_gp(
     return gp
 
 
+def refit(x: np.ndarray, y: np.ndarray, gp: FittedGP, hyperparameters: dict, noise) -> FittedGP:
+    """``gp``'s stage on readings ``x`` (n,) and targets ``y`` (n,) (a subset, say) with
+    its kernel and mean and the given ``hyperparameters`` and known ``noise``: cascal's own
+    refits (outlier screening's), which warn of no jitter the user did not choose (a
+    review: screening had warned, naming settings the user never gave)."""
+    with single_threaded_blas():
+        return _fit_gp(
+            x,
+            y,
+            gp.kernel,
+            gp.mean,
+            noise,
+            hyperparameters.get("noise_variance", 0.0) > 0,
+            hyperparameters,
+            1,
+            0,
+            None,
+            None,
+            ("x", "y"),
+        )
+
+
 def _fit_gp(
     x, y, kernel, mean, noise, learn_noise, hyperparameters, n_restarts, seed, period, bounds, names
 ) -> FittedGP:

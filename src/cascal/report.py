@@ -20,6 +20,7 @@ from .compensation import in_arc
 from .errors import CascalError
 from .gp import Z95
 from .io.modelfile import CalibrationModel
+from .planning import NOISE_FLOOR, default_noise_variance
 from .plots import figure_style, plot_change, plot_plan, plot_verification, set_title
 from .reportdata import CurveView, StageView, correction_curve, stage_views
 from .screening import LEVEL, Screening
@@ -297,8 +298,12 @@ def build_report(
         (
             "fitted",
             f"{model.created or '(not saved yet)'} with cascal "
-            f"{model.cascal_version or __version__}, seed {model.seed}, "
-            f"{model.n_restarts} optimiser starts per stage",
+            f"{model.cascal_version or __version__}, seed {model.seed}"
+            + (
+                ""
+                if model.kernel is None
+                else f", up to {model.n_restarts} optimiser starts per stage"
+            ),
         ),
     ]
     parts = [
@@ -467,13 +472,21 @@ def _plan_section(model: CalibrationModel) -> list[str]:
     except CascalError as exc:
         return [*out, f"<p>No plan: {e(str(exc))}</p>"]
     plan = mp.plan
+    sd = _quantity(float(np.sqrt(plan.noise_variance)), unit)
+    average = default_noise_variance(model.fitted.models[0])  # type: ignore[arg-type]
+    precision = (  # (a review: the floor had been called the average point's precision)
+        f"each as precise as the average existing point, repeated readings averaged as there "
+        f"(standard deviation {sd})"
+        if plan.noise_variance <= average
+        else f"each with a standard deviation of {sd}, the planner's floor ({NOISE_FLOOR:g} "
+        f"of stage 0's prior variance), above the average existing point's "
+        f"{_quantity(float(np.sqrt(average)), unit)}"
+    )
     reach = ", ".join(range_text(a, b) for a, b in mp.reach)  # (inward: a review)
     out.append(
         f"<p>{plan.positions.size} further reference measurements of stage 0, chosen one at a "
         f"time among the test-bed readings the reference points cover ({e(reach)} {e(unit)}), "
-        f"each where it most lowers {e(mp.target)}; each as precise as the average existing "
-        f"point, repeated readings averaged as there (standard deviation "
-        f"{e(_quantity(float(np.sqrt(plan.noise_variance)), unit))}). <code>cascal plan</code> "
+        f"each where it most lowers {e(mp.target)}; {e(precision)}. <code>cascal plan</code> "
         "proposes more, within other reach, or for another precision (--noise-std).</p>"
     )
     f, shown = display_scale(unit, float(plan.u_max[0]))  # the figure's unit

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from .errors import InputError
-from .gp import FittedGP, fit_gp
+from .gp import FittedGP, refit
 from .likelihood import Objective
 from .linalg import inverse_diagonal
 from .noise import Dense, Diagonal, Noise
@@ -214,10 +214,7 @@ def _refit(gp: FittedGP, keep: np.ndarray) -> FittedGP:
 
         found = minimize_scalar(cost, bounds=(t0 - _NOISE_DROP, t0 + 1.0), method="bounded")
         sn2 = float(np.exp(found.x))
-    hp = dict(gp.hyperparameters, noise_variance=sn2)
-    return fit_gp(
-        x, y, kernel=gp.kernel, mean=gp.mean, noise=noise, learn_noise=sn2 > 0, hyperparameters=hp
-    )
+    return refit(x, y, gp, dict(gp.hyperparameters, noise_variance=sn2), noise)
 
 
 def _subset(noise: Noise | None, n: int, keep: np.ndarray) -> Noise | None:

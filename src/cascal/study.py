@@ -92,7 +92,8 @@ def run_study(
         trials: Number of trials: trials 0 .. trials-1. A folder can be extended with a
             larger number; a smaller one summarises the first ``trials`` stored.
         config: Seed and fit settings (the folder's identity: other settings are refused).
-        workers: Local worker processes (default: CPU count; 1 runs in this process).
+        workers: Local worker processes (default: the CPUs this process may use; 1 runs
+            in this process).
         scheduler: Address of a Dask scheduler to run on instead (needs ``distributed``);
             a :class:`~cascal.errors.CascalWarning` says where it has no workers yet.
         executor: Any executor to run on instead (takes precedence).
@@ -214,13 +215,13 @@ def _check_same_numbers(config: StudyConfig, stored: TrialResult | None, folder:
 
 
 #: Outputs of a study folder, each written to a temporary file and renamed.
-_OUTPUTS = ("trials.csv", "summary.json", "cost_distribution.png", "cost_distribution.svg")
+OUTPUTS = ("trials.csv", "summary.json", "cost_distribution.png", "cost_distribution.svg")
 
 
 def _sweep(folder: Path) -> None:
     """Remove the temporary files of outputs that a killed run left (over a minute old)."""
     now = time.time()
-    for name in _OUTPUTS:
+    for name in OUTPUTS:
         for tmp in folder.glob(f".{name}.*.tmp"):
             try:
                 if now - tmp.stat().st_mtime > 60.0:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,8 +84,11 @@ def _element_kinds(a: object) -> set[str]:
     """Which of ``"text"`` and ``"bool"`` occur among the entries of an array or list
     ``a`` (a list's top level; an object array's every entry): NumPy reads both as numbers,
     ``"1.0"`` and ``True`` alike, also mixed with numbers."""
-    if not isinstance(a, np.ndarray | list | tuple) and hasattr(a, "__array__"):
-        a = np.asarray(a)  # (a pandas Series, say: its dtype tells)
+    if not isinstance(a, np.ndarray | list | tuple | numbers.Number | str | bytes):
+        try:  # (a pandas Series, a deque, a memoryview: as an array, its dtype tells)
+            a = np.asarray(a)
+        except (TypeError, ValueError):  # (ragged: as_positions names it)
+            return set()
     if isinstance(a, np.ndarray):  # (object arrays: an unconverted pandas column's)
         kind = a.dtype.kind
         if kind in "SU":
@@ -106,8 +110,9 @@ def _element_kinds(a: object) -> set[str]:
 def as_readings(a: object, name: str) -> tuple[np.ndarray, bool]:
     """``a`` as :func:`as_positions` gives it, a single number (a 0-d array too) as shape
     (1,), and whether it was one: :func:`scalar_out` then gives the answer as one number."""
-    if isinstance(a, bool | np.bool_):
-        raise InputError(f"{name}: expected numbers, got a bool ({a!r})")
+    if isinstance(a, bool | np.bool_) or (isinstance(a, np.ndarray) and a.dtype.kind == "b"):
+        what = f"a bool ({a!r})" if np.ndim(a) == 0 else "bools"  # (0-d too: a review)
+        raise InputError(f"{name}: expected numbers, got {what}")
     try:  # (text, also a 0-d array of it, goes to as_positions, which names it)
         textual = isinstance(a, np.ndarray) and a.dtype.kind in "SUO"
         one = not (isinstance(a, str | bytes) or a is None or textual) and np.ndim(a) == 0

@@ -49,8 +49,12 @@ def expected_within(k: float = COVERAGE_FACTOR) -> float:
 
 
 #: Units in the last place of the readings (and the MPE) within which a point at the MPE
-#: conforms: the round-off of ``corrected - reference`` and of the sum with ``k u``.
-LIMIT_ULPS = 8
+#: conforms: the round-off of the readings' decimals (the subtraction of two close ones is
+#: exact) and of the sum with ``k u``.
+LIMIT_ULPS = 4
+#: The most of the MPE by which that allowance may widen it: where the readings resolve the
+#: MPE less finely than this, a point at the limit is decided by round-off.
+LIMIT_SHARE = 1e-9
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,14 +112,16 @@ class Verification:
     def conforms(self) -> np.ndarray | None:
         """``|error| + k u_reference <= mpe`` at each point, shape (m,); None without MPE.
 
-        A point on the limit conforms (ISO 14253-1's zones hold their limits) whatever the
-        binary round-off of the subtraction that gave its error: the comparison allows
-        :data:`LIMIT_ULPS` units in the last place of the readings and the MPE (a review:
-        of five points exactly on the limit in decimal, two had failed)."""
+        A point on the limit in decimals conforms (ISO 14253-1's zones hold their limits)
+        whatever the binary round-off of its readings: the comparison allows
+        :data:`LIMIT_ULPS` units in the last place of the readings and the MPE, at most
+        :data:`LIMIT_SHARE` of the MPE (a review: of five points exactly on the limit, two
+        had failed; a second: readings of 1e6 against an MPE of 1e-9 must not widen it)."""
         if self.mpe is None:
             return None
         scale = np.maximum(np.abs(self.corrected), np.abs(self.reference))
         slack = LIMIT_ULPS * np.finfo(float).eps * np.maximum(scale, self.mpe)
+        slack = np.minimum(slack, LIMIT_SHARE * self.mpe)
         return np.abs(self.error) + self.k * self.u_reference <= self.mpe + slack
 
     @property

@@ -573,3 +573,32 @@ def test_a_lookup_table_fleet_says_it_has_no_u_and_hidden_files_are_left_out(fle
     assert "no u (lut)" in res.stdout and "nan" not in res.stdout
     assert "1 hidden file(s) left out (._device01.csv)" in res.stderr
     assert "1 of 1 devices calibrated" in res.stdout
+    (devices / "device01.csv").unlink()  # hidden files alone: named (a diff review)
+    res = run_cascal("fit-devices", tb, "--devices", devices, "-o", tmp_path / "o")
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "no .csv device files in folder" in res.stderr
+    assert "; 1 hidden file(s) left out (._device01.csv)" in res.stderr
+
+
+def test_a_write_protected_fleet_output_or_study_output_is_not_replaced(fleet, tmp_path):
+    """A diff review's case: -o files were refused where write-protected, but a fleet's
+    testbed.json, device models and summary, and a study's outputs, were replaced."""
+    import shutil
+    import subprocess
+    import sys
+
+    _, tb, folder, out, _ = fleet
+    again = tmp_path / "again"
+    shutil.copytree(out, again)
+    (again / "devices" / "device02.json").chmod(0o444)
+    res = run_cascal("fit-devices", tb, "--devices", folder, "-o", again)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "device02.json: the file is write-protected; not replaced" in res.stderr
+    study = tmp_path / "study"
+    study.mkdir()
+    (study / "summary.json").write_text("{}")
+    (study / "summary.json").chmod(0o444)
+    cmd = [sys.executable, "-m", "cascal.cli", "study", "--trials", "1", "--out", str(study)]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "summary.json: the file is write-protected" in done.stderr
+    assert not (study / "study.sqlite").exists()

@@ -52,7 +52,7 @@ def test_report_names_the_model_file_it_describes(report, linear_model):
     assert f"<td>content checksum (sha256)</td><td>{checksum}</td>" in text
     digest = hashlib.sha256(linear_model.read_bytes()).hexdigest()
     assert f"<td>SHA-256 of the file</td><td>{digest}</td>" in text
-    assert "optimiser starts per stage" in text
+    assert "up to 5 optimiser starts per stage" in text
     rms = re.search(r"RMS ([0-9.e+-]+) m", info).group(1)  # (info: 3 digits)
     shown = re.search(r"RMS correction over the calibrated range: ([0-9.e+-]+) m", text)
     assert f"{float(shown.group(1)):.3g}" == rms

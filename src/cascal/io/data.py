@@ -383,9 +383,17 @@ def _check_preamble(text: str, first: str, width: int, name: str) -> None:
     if len(above) < 2 or any(_numberish(lines[j - 1]) for j in above):
         return  # (a row of numbers with a typo: the rows below name it)
     nearest = lines[above[-1] - 1]
-    if _widest(nearest) >= width and any(_is_value(c) for c in _nonempty(nearest)):
-        return  # the first data row, with a word beside a number (an instrument's ERR, n/a:
-        # the rows below name it; a review found it taken for a second header row)
+    if (
+        _widest(nearest) >= width
+        and any(_is_value(c) for c in _nonempty(nearest))
+        and any(_widest(lines[j - 1]) >= width and not _units(lines[j - 1]) for j in above[:-1])
+    ):  # the first data row, a word beside a number (an instrument's ERR, n/a), below a
+        # header: the rows below name it (a review: it had been taken for a second header
+        # row); lines above that header are still named (a second: "position,1" under a
+        # comment is the header, its "1" a column's name)
+        above = above[:-1]
+        if len(above) < 2:
+            return
     # the header: the nearest row above the numbers of as many cells, not one of units
     header = next(
         (j for j in reversed(above) if _widest(lines[j - 1]) >= width and not _units(lines[j - 1])),
