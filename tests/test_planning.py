@@ -232,21 +232,14 @@ def test_the_plan_of_a_three_stage_model_says_its_target_is_not_the_device():
     "over its calibrated range", which is the device's range, and showed a "largest u now"
     that differed from the device's just above. It names stage 1 as the one below the test
     bed now, and its readings' range as such."""
-    from dataclasses import replace
-
     from cascal.workflow import fit_model, plan_measurements
-    from utils import demo_stages
+    from utils import three_stages
 
-    ref, dev = demo_stages()
-    keep = (dev.x > dev.x.min() + 0.05) & (dev.x < dev.x.max() - 0.05)
-    third = replace(
-        dev, x=dev.x[keep] + 2e-4 * np.sin(9 * dev.x[keep]), y=dev.x[keep],
-        counts=dev.counts[keep], rows=dev.rows[keep],
-    )  # fmt: skip
-    target = plan_measurements(fit_model([ref, dev, third], n_restarts=1), 2).target
+    stages = three_stages()
+    target = plan_measurements(fit_model(stages, n_restarts=1), 2).target
     start = "stage 1 (testbed_device.csv)'s uncertainty over its readings' range ["
     assert target.startswith(start)
     assert "(of 3 stages, the one below the test bed; not the device's" in target
     assert "calibrated" not in target
-    two = plan_measurements(fit_model([ref, dev], n_restarts=1), 2).target
+    two = plan_measurements(fit_model(stages[:2], n_restarts=1), 2).target
     assert "over its calibrated range [" in two and "of 3 stages" not in two

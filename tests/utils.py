@@ -50,6 +50,21 @@ def fd_gradient(f, theta: np.ndarray, h: float = 1e-5) -> np.ndarray:
     return g
 
 
+def three_stages():
+    """The linear demo's stages and a third below them, reference end first: a device read
+    by the demo's device over its range less 5 cm at either end, with its own 0.2 mm
+    error."""
+    from dataclasses import replace
+
+    ref, dev = demo_stages()
+    keep = (dev.x > dev.x.min() + 0.05) & (dev.x < dev.x.max() - 0.05)
+    third = replace(
+        dev, x=dev.x[keep] + 2e-4 * np.sin(9 * dev.x[keep]), y=dev.x[keep],
+        counts=dev.counts[keep], rows=dev.rows[keep],
+    )  # fmt: skip
+    return [ref, dev, third]
+
+
 def demo_stages(case=None):
     """A demo case's stages (default: the linear one, seed 0) as the workflow reads them
     from files (repeats averaged, provenance filled in), reference end first."""

@@ -114,19 +114,11 @@ def test_a_model_compared_with_itself_is_named(linear_model):
 def test_a_three_stage_comparison_names_the_shared_stages_as_upstream(tmp_path):
     """A numerical review's nit: comparing two three-stage models that share their upper
     stages said "the test bed's calibration both share", where they share two stages."""
-    from dataclasses import replace
-
     from cascal.io.modelfile import save_model
     from cascal.workflow import fit_model
-    from utils import demo_stages
+    from utils import three_stages
 
-    ref, dev = demo_stages()
-    keep = (dev.x > dev.x.min() + 0.05) & (dev.x < dev.x.max() - 0.05)
-    third = replace(
-        dev, x=dev.x[keep] + 2e-4 * np.sin(9 * dev.x[keep]), y=dev.x[keep],
-        counts=dev.counts[keep], rows=dev.rows[keep],
-    )  # fmt: skip
-    model = save_model(tmp_path / "three.json", fit_model([ref, dev, third], n_restarts=1))
+    model = save_model(tmp_path / "three.json", fit_model(three_stages(), n_restarts=1))
     res = run_cascal("compare", model, model)
     assert res.returncode == 0, res.stderr
     assert "(the upstream calibrations both share counted once)" in res.stdout
