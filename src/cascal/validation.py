@@ -99,10 +99,10 @@ def _element_kinds(a: object) -> set[str]:
     else:
         items = a if isinstance(a, list | tuple) else ()
     kinds = set()
-    for v in items:
-        if isinstance(v, str | bytes):
+    for t in set(map(type, items)):  # (the types first: a review timed 0.6 s for 2e6 items)
+        if issubclass(t, str | bytes):
             kinds.add("text")
-        elif isinstance(v, bool | np.bool_):
+        elif issubclass(t, bool | np.bool_):
             kinds.add("bool")
     return kinds
 
