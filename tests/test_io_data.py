@@ -560,3 +560,21 @@ def test_utf16_without_a_byte_order_mark_is_named(tmp_path):
     with pytest.raises(InputError) as exc:
         read_stage(p)
     assert "UTF-16" not in str(exc.value)
+
+
+def test_repeats_read_with_jitter_are_named_as_such(tmp_path):
+    """A user review's case: three readings per set point, the calibrated sensor's varying
+    by 2 µm of jitter, were refused as not one-to-one with the advice to measure at fewer,
+    wider-spaced positions (they were 10 mm apart). The message names the near-equal
+    readings as likely repeats and says how repeats are averaged."""
+    rng = np.random.default_rng(0)
+    sp = np.repeat(np.arange(20.0, 281.0, 10.0), 3)
+    x = sp + 2e-3 * rng.standard_normal(sp.size)
+    y = sp + 0.3 * np.sin(sp / 50) + 5e-4 * rng.standard_normal(sp.size)
+    rows = "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(x, y, strict=True))
+    with pytest.raises(InputError) as exc:
+        read_stage(_write(tmp_path, "stage,laser\n" + rows))
+    text = str(exc.value)
+    assert "under a twentieth of the usual spacing (10): repeated readings of one position?" in text
+    assert "write each repeat's set point in stage, or average them first" in text
+    assert "wider-spaced" not in text

@@ -89,9 +89,19 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         z_at = _at(parts, s["max_z_at"])
         print(f"  largest |change| / u {s['max_z']:.3g}, at reading {z_at}; {band}")
         if c.changed:
+            same_device = np.array_equal(old.data[-1].x, new.data[-1].x) and np.array_equal(
+                old.data[-1].y, new.data[-1].y
+            )
+            cause = (  # (a review: a test bed's recalibration, the device file unchanged,
+                # had been called a change of the device)
+                "the device's readings are the same in both models, so the stages above it "
+                "changed (the test bed's calibration), not the device"
+                if same_device and len(old.data) > 1
+                else "the device (or its mounting) has changed since the old calibration"
+            )
             print(
                 f"  beyond that band over {100 * s['share_beyond_band']:.1f} % of the range: "
-                "the device (or its mounting) has changed since the old calibration"
+                f"{cause}"
             )
         else:
             print(

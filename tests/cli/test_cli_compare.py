@@ -122,3 +122,24 @@ def test_a_three_stage_comparison_names_the_shared_stages_as_upstream(tmp_path):
     res = run_cascal("compare", model, model)
     assert res.returncode == 0, res.stderr
     assert "(the upstream calibrations both share counted once)" in res.stdout
+
+
+def test_a_change_of_the_test_bed_alone_is_not_called_a_change_of_the_device(tmp_path):
+    """A user review's case: a recalibrated test bed, the device file byte-identical, and
+    compare concluded that "the device (or its mounting) has changed"; it names the stages
+    above now, the device's readings being the same in both models."""
+    from dataclasses import replace
+
+    from cascal.io.modelfile import save_model
+    from cascal.workflow import fit_model
+    from utils import demo_stages
+
+    ref, dev = demo_stages()
+    bump = replace(ref, y=ref.y + 5e-4 * np.exp(-(((ref.x - 0.75) / 0.05) ** 2)))
+    old = save_model(tmp_path / "old.json", fit_model([ref, dev], n_restarts=1))
+    new = save_model(tmp_path / "new.json", fit_model([bump, dev], n_restarts=1))
+    res = run_cascal("compare", old, new)
+    assert res.returncode == 0, res.stderr
+    assert "beyond that band" in res.stdout
+    assert "the stages above it changed (the test bed's calibration), not the device" in res.stdout
+    assert "the device (or its mounting) has changed" not in res.stdout

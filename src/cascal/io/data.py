@@ -315,6 +315,15 @@ def read_stage(
             )
         if bad.size == 1:  # (a wrong reading of xn moves its point among others)
             hint = f"; a mistyped cell (of {yn} or of {xn}), or rows out of step?"
+        gap = float(rep.x[k + 1] - rep.x[k])
+        usual = float(np.quantile(np.diff(rep.x), 0.9))
+        if gap < 0.05 * usual:  # (a user review: repeats read with jitter, told to space out)
+            hint = (
+                f"; {xn} {float(rep.x[k])!r} and {float(rep.x[k + 1])!r} lie {gap:.3g} apart, "
+                f"under a twentieth of the usual spacing ({usual:.3g}): repeated readings of "
+                f"one position? Only readings of exactly the same {xn} are averaged as "
+                f"repeats: write each repeat's set point in {xn}, or average them first"
+            )
         raise InputError(
             f"{value(k + 1)} is not above {value(k)}; "
             "the more accurate reading must increase with the calibrated one (one-to-one, "
