@@ -94,7 +94,13 @@ def _cmd_info(args: argparse.Namespace) -> int:
     for file in changed:
         warn("info", f"{file} is not the file this model was fitted from (its SHA-256 differs)")
     warn_cautions("info", model)
-    return 0
+    # a changed input fails the check, for a script to see (a user review: status 0), as
+    # verify's and compare's failed checks do; an input not found cannot be checked
+    return EXIT_CHANGED if changed else 0
+
+
+#: Exit status of ``cascal info`` where an input file differs from the one fitted.
+EXIT_CHANGED = 3
 
 
 def add_info_parser(sub) -> None:
@@ -104,7 +110,7 @@ def add_info_parser(sub) -> None:
         help="summarise a model file and check its input files against their checksums",
         description="Summarise a model file (stages, hyperparameters, calibrated range, "
         "warnings about its u) and check the stage files it was fitted from against the "
-        "checksums it stores.",
+        "checksums it stores: exit status 3 where one differs.",
     )
     p.add_argument("model", metavar="MODEL.json")
     p.set_defaults(func=_cmd_info)

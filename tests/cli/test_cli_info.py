@@ -58,7 +58,7 @@ def test_info_says_when_an_input_changed_or_is_gone(linear_files, tmp_path):
         fh.write("0.5,0.5\n")
     (tmp_path / ref.name).unlink()
     res = run_cascal("info", model)
-    assert res.returncode == 0, res.stderr
+    assert res.returncode == 3, res.stderr  # (a user review: 0, no use to a script)
     assert f"  input {ref} (columns testbed, reference): not found" in res.stdout
     assert f"  input {dev} (columns device, testbed): changed since the fit" in res.stdout
     then, now = (load_model(model).sources[1].sha256, hashlib.sha256(dev.read_bytes()).hexdigest())
@@ -70,6 +70,8 @@ def test_info_says_when_an_input_changed_or_is_gone(linear_files, tmp_path):
     assert "log marginal likelihood" not in res.stdout  # lookup tables
     assert "Stage 0 (" in res.stdout and ": lookup table" in res.stdout
     assert res.stdout.splitlines()[-1].endswith(", no uncertainty (lookup tables)")
+    dev.write_text(dev.read_text().removesuffix("0.5,0.5\n"))  # as fitted: only one not found
+    assert run_cascal("info", model).returncode == 0
 
 
 def test_input_status_looks_beside_the_model(tmp_path):
