@@ -1134,7 +1134,11 @@ def _parser() -> argparse.ArgumentParser:
         sub,
         "correct",
         "correct device readings with a model file",
-        "each reading's estimated true position and its standard uncertainty u, as CSV.",
+        "each reading's estimated true position and its standard uncertainty u, as CSV: u is "
+        "the calibration's (of the correction at that reading); the repeatability of a single "
+        "reading comes on top (cascal verify --reading-u combines them). Beyond the calibrated "
+        "range the GP's correction extrapolates (a compensation table from cascal export holds "
+        "the end's); a rotary reading's corrected angle is not wrapped to one turn.",
     )
     cor.add_argument(
         "readings", metavar="READINGS.csv", help="device readings, one column with a header"
