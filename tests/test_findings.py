@@ -188,3 +188,18 @@ def test_a_stage_outside_the_range_above_names_units_and_turns(tmp_path):
         fit_model([table, enc], n_restarts=1, unit="mm")
     with pytest.raises(InputError, match=r"--period 6.28318530717959, a GP"):
         fit_model([table, enc], n_restarts=1, unit="rad")  # (the numbers do not matter)
+
+
+def test_the_exclude_advice_names_a_file_whose_name_the_stage_above_shares_by_its_path(tmp_path):
+    """A user review's case: two stage files named s.csv in two folders; fit advised
+    ``--exclude s.csv:...``, which it then refused as naming several stage files."""
+    from cascal.errors import InputError
+
+    x = np.linspace(0.05, 0.95, 12)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    ref = _stage(tmp_path / "a" / "s.csv", x, x + 1e-4 * np.sin(3 * x))
+    dev = _stage(tmp_path / "b" / "s.csv", x, np.r_[x[:-1], 0.99], names=("device", "testbed"))
+    with pytest.raises(InputError) as exc:
+        fit_model([ref, dev], n_restarts=1)
+    assert f"(--exclude {tmp_path / 'b' / 's.csv'}:13)" in str(exc.value)

@@ -392,7 +392,11 @@ def _check_inside(
         y, span = float(stage.y[i]), hi - lo
         far = float(np.max(beyond(stage.y[out], lo, hi)))
         rows = np.concatenate([stage.point_rows(int(j)) for j in out])
-        spec = exclude_spec(Path(stage.source.file).name, np.sort(rows))
+        name = Path(stage.source.file).name  # the path where the file above shares it (a
+        # review: --exclude names one stage file, and the name alone named two)
+        if above is not None and Path(above.source.file).name == name:
+            name = stage.source.file
+        spec = exclude_spec(name, np.sort(rows))
         advice = (
             "the reference never confirmed it: measure the stage above over this range too, "
             f"or leave {'it' if out.size == 1 else 'them'} out (--exclude {spec})"
