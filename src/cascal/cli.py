@@ -689,10 +689,35 @@ def _read_stages(
         )
     if args.period is not None and not (0 < args.period < float("inf")):
         raise InputError(f"--period: expected a positive number, got {args.period!r}")
-    return [
+    stages = [
         read_stage(p, x_column=x, y_column=y, period=period, exclude=e)
         for p, x, y, e in zip(paths, xs, ys, skip, strict=True)
     ]
+    _check_unit_names(stages, args.unit, args.command)
+    return stages
+
+
+#: Units a column's name may carry (``position_mm``, ``x [um]``, ``angle (deg)``).
+_NAMED_UNITS = ("nm", "um", "µm", "mm", "cm", "m", "deg", "rad", "arcsec")
+
+
+def _check_unit_names(stages: list, unit: str, command: str) -> None:
+    """Warn where a stage's column names carry a unit other than ``unit`` (a user review:
+    columns named ``encoder_mm`` fitted as metres, --unit left at its default, every
+    label 1000 times off)."""
+    import re
+
+    pattern = re.compile(r"(?:^|[_\s\[(])(" + "|".join(_NAMED_UNITS) + r")(?:$|[\])\s])", re.I)
+    for stage in stages:
+        named = {m.group(1).lower() for c in stage.source.columns if (m := pattern.search(c))}
+        other = sorted(named - {unit.lower(), "um" if unit == "µm" else unit.lower()})
+        if other and len(named) == 1:
+            cols = ", ".join(stage.source.columns)
+            warn(
+                command,
+                f"{stage.source.file}: its columns ({cols}) name the unit {other[0]}, and the "
+                f"readings are taken as {unit} (--unit): give --unit {other[0]} if they are",
+            )
 
 
 def _per_file(values: list[str] | None, n: int, option: str) -> list[str | None]:

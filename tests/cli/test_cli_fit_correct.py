@@ -326,3 +326,18 @@ def test_correct_echoes_readings_as_read(linear_model, linear_files, tmp_path):
     plain.write_text("reading\n" + "".join(f"{x:.3f}\n" for x in r[:50].tolist()))
     res = run_cascal("correct", linear_model, plain, "-o", tmp_path / "p.csv")
     assert res.returncode == 0 and "readings as read" not in res.stdout, res.stderr
+
+
+def test_columns_that_name_another_unit_are_warned_of(tmp_path):
+    """A user review's case: columns named encoder_mm and laser_mm fitted with --unit left
+    at its default (m), every label then 1000 times off, without a word."""
+    stage = tmp_path / "s.csv"
+    stage.write_text("encoder_mm,laser_mm\n0,0.01\n10,10.02\n20,20.01\n30,30.0\n40,40.03\n")
+    res = run_cascal("fit", stage, "-o", tmp_path / "m.json")
+    assert res.returncode == 0, res.stderr
+    assert "name the unit mm, and the readings are taken as m (--unit)" in res.stderr
+    res = run_cascal("fit", stage, "-o", tmp_path / "m.json", "--unit", "mm")
+    assert res.returncode == 0 and "name the unit" not in res.stderr
+    plain = tmp_path / "p.csv"  # no unit named, or a word that only looks like one
+    plain.write_text("m_encoder,reference\n0,0.01\n10,10.02\n20,20.01\n30,30.0\n40,40.03\n")
+    assert "name the unit" not in run_cascal("fit", plain, "-o", tmp_path / "p.json").stderr
