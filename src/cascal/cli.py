@@ -507,21 +507,23 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
         """Summarise the devices done, list every other as not fitted, keeping no model of
         an earlier run (a review: those never started were left out, their old models
         beside the summary; a second: a new testbed.json beside the old devices' models,
-        interrupted before the first device), say so and raise ``exc`` again."""
-        from .pool import Terminated
+        interrupted before the first device), say so and raise ``exc`` again. A further
+        signal waits until the summary is written (one had cut it short)."""
+        from .pool import Terminated, deferred_signals
         from .workflow import INTERRUPTED, DeviceResult, discard_model, model_path
 
-        n_done = sum(r.error != INTERRUPTED for r in finished)  # (a review: the rest counted)
-        fitted = {r.device for r in finished}
-        for f in files:
-            if f.stem not in fitted:
-                discard_model(model_path(out / "devices", f))
-                finished.append(DeviceResult(f.stem, str(f), error=INTERRUPTED))
-        finished.extend(others)
-        finished.sort(key=lambda r: Path(r.file).name)  # file order, as a finished run's
-        path = write_text(summary_path, _fleet_csv(finished, notes, tb.unit))
-        what = "terminated" if isinstance(exc, Terminated) else "interrupted"
-        warn("fit-devices", f"{what} after {n_done} of {len(files)} devices: {path}")
+        with deferred_signals():
+            n_done = sum(r.error != INTERRUPTED for r in finished)  # (a review: the rest
+            fitted = {r.device for r in finished}  # had been counted too)
+            for f in files:
+                if f.stem not in fitted:
+                    discard_model(model_path(out / "devices", f))
+                    finished.append(DeviceResult(f.stem, str(f), error=INTERRUPTED))
+            finished.extend(others)
+            finished.sort(key=lambda r: Path(r.file).name)  # file order, as a finished run's
+            path = write_text(summary_path, _fleet_csv(finished, notes, tb.unit))
+            what = "terminated" if isinstance(exc, Terminated) else "interrupted"
+            warn("fit-devices", f"{what} after {n_done} of {len(files)} devices: {path}")
         raise exc
 
     every: list[str] = []  # cautions of every device's u, in each one's summary row too
