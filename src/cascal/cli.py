@@ -119,7 +119,7 @@ def check_output(
         raise InputError(f"{option} {p}: {why}") from None
     os.close(fd)
     os.unlink(probe)
-    if mode is not None and stat.S_ISREG(mode) and not folder:
+    if not folder:
         check_writable(p, f"{option} {path}")
 
 
@@ -710,9 +710,13 @@ def _check_unit_names(stages: list, unit: str, command: str) -> None:
     import re
 
     pattern = re.compile(r"(?:^|[_\s\[(])(" + "|".join(_NAMED_UNITS) + r")(?:$|[\])\s])", re.I)
+
+    def norm(u: str) -> str:  # (µm and um are one unit)
+        return u.lower().replace("µ", "u")
+
     for stage in stages:
-        named = {m.group(1).lower() for c in stage.source.columns if (m := pattern.search(c))}
-        other = sorted(named - {unit.lower(), "um" if unit == "µm" else unit.lower()})
+        named = {norm(m.group(1)) for c in stage.source.columns if (m := pattern.search(c))}
+        other = sorted(named - {norm(unit)})
         if other and len(named) == 1:
             cols = ", ".join(stage.source.columns)
             warn(

@@ -845,8 +845,6 @@ def plan_measurements(
         if period is None:
             grid = np.linspace(float(x1.min()), float(x1.max()), _PLAN_TARGET)
             span1 = f"range {range_text(float(grid[0]), float(grid[-1]))} {unit}"
-            if not device:  # (a report review: its span was called the calibrated range)
-                span1 = f"readings' range {range_text(float(grid[0]), float(grid[-1]))} {unit}"
         elif measured is None:
             grid = np.linspace(0.0, period, _PLAN_TARGET, endpoint=False)
             span1 = f"full turn (period {period:g})"
@@ -858,7 +856,8 @@ def plan_measurements(
             testbed, candidates, k, lower=target, noise_variance=s2, progress=progress
         )
         what = f"stage 1 ({name})'s uncertainty over its calibrated {span1}"
-        if not device:
+        if not device:  # (a report review: its span was called the calibrated range)
+            span1 = f"readings' {span1}" if period is None else span1
             what = (
                 f"stage 1 ({name})'s uncertainty over its {span1} (of {len(model.data)} "
                 "stages, the one below the test bed; not the device's, further down)"
