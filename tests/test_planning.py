@@ -227,19 +227,102 @@ def test_a_noiseless_measurement_is_floored_and_stays_consistent(cascade):
     assert_allclose(plan.u_rms[-1], np.sqrt(np.mean(plan.u_after**2)), rtol=1e-6)
 
 
-def test_the_plan_of_a_three_stage_model_says_its_target_is_not_the_device():
-    """A report review's case: a three-stage model's plan lowered stage 1's uncertainty
-    "over its calibrated range", which is the device's range, and showed a "largest u now"
-    that differed from the device's just above. It names stage 1 as the one below the test
-    bed now, and its readings' range as such."""
-    from cascal.workflow import fit_model, plan_measurements
+@pytest.fixture(scope="module")
+def chain():
+    """A three-stage bayes model (the linear demo's stages and a device below them) and
+    the chain below its stage 0, the device's uncertainty at 31 readings its target."""
+    from cascal.workflow import fit_model
     from utils import three_stages
 
     stages = three_stages()
-    target = plan_measurements(fit_model(stages, n_restarts=1), 2).target
-    start = "stage 1 (testbed_device.csv)'s uncertainty over its readings' range ["
-    assert target.startswith(start)
-    assert "(of 3 stages, the one below the test bed; not the device's" in target
-    assert "calibrated" not in target
+    model = fit_model(stages, n_restarts=1)
+    _, g1, g2 = model.fitted.models
+    where = np.linspace(stages[2].x.min(), stages[2].x.max(), 31)
+    low = [LowerStage(g1, stages[1].y, stages[2].y), LowerStage(g2, stages[2].y, where)]
+    return stages, model, low
+
+
+def _refit_chain(stages, model, positions, s2):
+    """The device's u at the chain's target refitted from scratch through the public API:
+    stage 0 with the extra points (variance ``s2`` each: its learned noise, and the rest as
+    known noise), then each stage at its hyperparameters on the covariance the stage above
+    predicts at its upper readings."""
+    g0, g1, g2 = model.fitted.models
+    u, back = np.unique(positions, return_inverse=True)
+    x = np.concatenate([g0.x, positions])
+    y = np.concatenate([g0.y, g0.predict(u)[back]])
+    extra = np.full(positions.size, s2 - g0.hyperparameters["noise_variance"])
+    known = np.concatenate([stages[0].noise, extra])
+    above = fit_gp(x, y, kernel="se", noise=known, hyperparameters=_hp(g0), learn_noise=True)
+    for stage, gp in zip(stages[1:], (g1, g2), strict=True):
+        _, cov = above.predict(stage.y, return_cov=True)
+        above = fit_gp(gp.x, gp.y, kernel="se", noise=cov, hyperparameters=_hp(gp))
+    return above.predict(np.linspace(stages[2].x.min(), stages[2].x.max(), 31), return_std=True)[1]
+
+
+def test_a_chain_target_matches_the_refitted_chain(chain):
+    """With the device of a three-stage chain as target, every step's u and the u after the
+    whole plan equal the chain refitted from scratch with the points chosen so far (stage 0's
+    covariance carried down two stages); the first choice is the brute-force best."""
+    stages, model, low = chain
+    g0 = model.fitted.models[0]
+    assert stages[0].noise is not None and np.any(stages[0].noise > 0)  # (known noise too)
+    # (off stage 0's readings: a refit refuses a position twice with two targets)
+    cand = np.linspace(stages[0].x.min() + 1e-3, stages[0].x.max() - 1e-3, 25)
+    assert not np.isin(cand, g0.x).any()
+    plan = plan_reference(g0, cand, 4, lower=low)
+    s2 = plan.noise_variance
+    u_before = model.fitted.models[2].predict(low[1].where, return_std=True)[1]
+    assert_allclose(plan.u_before, u_before, rtol=1e-9)
+    # (the refits' noise is the stage above's predicted covariance, which matches the
+    # fitted model's to 1e-7 of itself: the models' factors carry their own round-off)
+    for i in range(plan.positions.size + 1):
+        u = _refit_chain(stages, model, plan.positions[:i], s2)
+        assert_allclose(plan.u_rms[i], np.sqrt(np.mean(u**2)), rtol=2e-6)
+        assert_allclose(plan.u_max[i], np.max(u), rtol=2e-6)
+    assert_allclose(plan.u_after, u, rtol=5e-6)
+    assert np.all(np.diff(plan.u_rms) < 0)
+    totals = [np.sum(_refit_chain(stages, model, np.array([c]), s2) ** 2) for c in cand]
+    assert plan.positions[0] == cand[int(np.argmin(totals))]
+    # stage 1 as the target (the plan before chains) lowers the device's u less
+    one = plan_reference(g0, cand, 4, lower=LowerStage(low[0].gp, low[0].upper, low[0].where))
+    u_one = _refit_chain(stages, model, one.positions, s2)
+    assert np.mean(u_one**2) >= np.mean(u**2) * (1 - 1e-9)
+
+
+def test_lower_variance_after_nothing_is_the_last_stage_of_a_chain(chain):
+    _, model, low = chain
+    var = lower_variance_after(low, model.fitted.models[0], np.empty(0), 1e-9)
+    u = model.fitted.models[2].predict(low[1].where, return_std=True)[1]
+    assert_allclose(np.sqrt(var), u, rtol=1e-9)
+
+
+def test_a_chain_is_checked(chain):
+    stages, model, low = chain
+    g0 = model.fitted.models[0]
+    from dataclasses import replace
+
+    bad = [replace(low[0], where=stages[2].y[:-1]), low[1]]
+    with pytest.raises(InputError, match="stage 1's where must be the upper readings of stage 2"):
+        plan_reference(g0, [0.2, 0.5], 2, lower=bad)
+    with pytest.raises(InputError, match=r"or a list of them from stage 1 down, got FittedGP"):
+        plan_reference(g0, [0.2, 0.5], 2, lower=[low[0], model.fitted.models[2]])
+
+
+def test_the_plan_of_a_three_stage_model_targets_the_device(chain):
+    """A report review's case: a three-stage model's plan had lowered stage 1's uncertainty,
+    labelled so. It now lowers the device's over its calibrated range, the chain's plan."""
+    from cascal.workflow import fit_model, plan_measurements
+
+    stages, model, _ = chain
+    mp = plan_measurements(model, 2)
+    start = "stage 2 (testbed_device.csv)'s uncertainty over its calibrated range ["
+    assert mp.target.startswith(start), mp.target
+    assert mp.target.endswith("(the device; the test bed's covariance passes down through stage 1)")
+    assert_allclose(mp.plan.where, np.linspace(stages[2].x.min(), stages[2].x.max(), 201))
+    assert_allclose(
+        mp.plan.u_before, model.fitted.models[2].predict(mp.plan.where, return_std=True)[1]
+    )
     two = plan_measurements(fit_model(stages[:2], n_restarts=1), 2).target
-    assert "over its calibrated range [" in two and "of 3 stages" not in two
+    assert two.startswith("stage 1 (testbed_device.csv)'s uncertainty over its calibrated range [")
+    assert "the device;" not in two

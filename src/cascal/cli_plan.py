@@ -141,8 +141,8 @@ def add_plan_parser(sub: argparse._SubParsersAction) -> None:
         "plan",
         help="propose where to take the next reference measurements of the test bed",
         description="Propose reference measurements of stage 0 (the test bed), one at a time, "
-        "each where it most lowers the uncertainty that matters: stage 1's (the device's, in "
-        "a two-stage model) for a bayes model, else the test bed's where it is used.",
+        "each where it most lowers the uncertainty that matters: the device's (the last "
+        "stage's) for a bayes model, else the test bed's where it is used.",
     )
     p.add_argument("model", metavar="MODEL.json")
     p.add_argument(

@@ -12,7 +12,11 @@ where it most lowers the summed posterior variance of a target:
   that stage's upper readings is part of its noise (method ``bayes``): a reduction
   ``w w^T`` of that noise lowers the summed variance at readings ``g`` by
   ``|K_g A^-1 w|^2 / (1 - w^T A^-1 w)`` (Sherman-Morrison; ``A`` the stage's target
-  covariance, ``K_g`` its kernel between ``g`` and its readings).
+  covariance, ``K_g`` its kernel between ``g`` and its readings); or
+* the variance of the last of a chain of such stages (the device of three or more): the
+  reduction passes down the chain as a rank-one term, each stage's posterior covariance at
+  the next one's upper readings falling by ``v v^T``, ``v = K_u A^-1 w / sqrt(1 - w^T A^-1
+  w)`` (``K_u`` its kernel between those readings and its own).
 
 Greedy choice is the usual sequential design for a summed posterior variance; a point may
 be chosen twice (a repeat averages the reference's noise down). The uncertainties after
@@ -23,7 +27,8 @@ by one Woodbury block update (:func:`lower_variance_after`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import itertools
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -82,6 +87,30 @@ class LowerStage:
     where: np.ndarray
 
 
+def _chain(lower: LowerStage | Sequence[LowerStage]) -> tuple[LowerStage, ...]:
+    """``lower`` as a chain of stages from stage 1 down, checked: each a
+    :class:`LowerStage`, each one's ``where`` the next one's ``upper``."""
+    chain = (lower,) if isinstance(lower, LowerStage) else lower
+    if not isinstance(chain, tuple | list) or not chain:
+        chain = (lower,)
+    for stage in chain:
+        if not isinstance(stage, LowerStage):  # (a README review: a FittedGP given met an
+            # AttributeError)
+            raise InputError(
+                "lower: expected a cascal.planning.LowerStage(gp, upper, where) (the stage "
+                "below: its fitted GP, its readings of this stage's sensor, where it is used), "
+                f"or a list of them from stage 1 down, got {type(stage).__name__}"
+            )
+    for k, (above, below) in enumerate(itertools.pairwise(chain), start=1):
+        here = as_positions(above.where, "where")
+        if not np.array_equal(here, as_positions(below.upper, "upper")):
+            raise InputError(
+                f"lower: stage {k}'s where must be the upper readings of stage {k + 1} (where "
+                "the stage below reads it): the chain passes its covariance down there"
+            )
+    return tuple(chain)
+
+
 @dataclass(frozen=True, slots=True)
 class Plan:
     """Proposed reference measurements, in the order chosen, and what they are worth.
@@ -93,7 +122,7 @@ class Plan:
         u_max: Largest standard uncertainty of the target, likewise, shape (k + 1,).
         noise_variance: Variance assumed for one new reference measurement, unit squared.
         where: Readings at which the target's uncertainty is counted, shape (m,): test-bed
-            readings, or the lower stage's own readings.
+            readings, or the (last) lower stage's own readings.
         u_before: Target's standard uncertainty at ``where`` now, shape (m,).
         u_after: The same after all ``positions`` are measured, recomputed at once,
             shape (m,).
@@ -121,7 +150,7 @@ def plan_reference(
     k: int,
     *,
     where: object | None = None,
-    lower: LowerStage | None = None,
+    lower: LowerStage | Sequence[LowerStage] | None = None,
     noise_variance: float | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> Plan:
@@ -133,7 +162,9 @@ def plan_reference(
         candidates: Test-bed readings the reference can reach, shape (c,).
         k: Measurements to propose, 1 to :data:`MAX_MEASUREMENTS`.
         where: Target: stage 0's variance at these test-bed readings, shape (m,); or
-        lower: Target: the variance of the stage below at ``lower.where``.
+        lower: Target: the variance of the stage below at ``lower.where``; or of the last
+            of a chain of stages (a list from stage 1 down, each one's ``where`` the next
+            one's ``upper``) at its ``where``.
         noise_variance: Variance of one new measurement; default
             :func:`default_noise_variance`; at least :data:`NOISE_FLOOR` times stage 0's
             largest prior variance (:attr:`Plan.noise_variance` is the one used).
@@ -149,15 +180,11 @@ def plan_reference(
         )
     if (where is None) == (lower is None):
         raise InputError("plan_reference: give the target as where= or lower=, not both")
-    if lower is not None and not isinstance(lower, LowerStage):  # (a README review: a
-        # FittedGP given met an AttributeError)
-        raise InputError(
-            "lower: expected a cascal.planning.LowerStage(gp, upper, where) (the stage below: "
-            f"its fitted GP, its readings of this stage's sensor, where it is used), got "
-            f"{type(lower).__name__}"
-        )
+    chain = None if lower is None else _chain(lower)
     s2 = _noise(testbed, noise_variance)
-    points = as_positions(where, "where") if lower is None else as_positions(lower.upper, "upper")
+    points = (
+        as_positions(where, "where") if chain is None else as_positions(chain[0].upper, "upper")
+    )
     # Stage 0's posterior covariance between the target's points and the candidates (q, c),
     # among the candidates (c, c), and the target points' variances (q,): updated in place.
     Vp, Vc = testbed.whitened(points), testbed.whitened(cand)
@@ -166,7 +193,12 @@ def plan_reference(
     var_p = testbed.kernel.diag(points) - np.einsum("ij,ij->j", Vp, Vp)
     prior = float(np.max(testbed.kernel.diag(np.concatenate([cand, points]))))
     s2 = max(s2, NOISE_FLOOR * prior)  # also keeps every candidate's variance plus noise up
-    target = _TestbedTarget(var_p) if lower is None else _LowerTarget(lower, cross)
+    if chain is None:
+        target: _TestbedTarget | _LowerTarget | _ChainTarget = _TestbedTarget(var_p)
+    elif len(chain) == 1:
+        target = _LowerTarget(chain[0], cross)
+    else:
+        target = _ChainTarget(chain, cross)
     var = [target.variance()]
     chosen = []
     for _ in range(int(k)):
@@ -181,11 +213,11 @@ def plan_reference(
         if progress is not None:
             progress(len(chosen), int(k))
     positions = np.asarray(chosen)
-    if lower is None:
+    if chain is None:
         where_out, after = points, variance_after(testbed, points, positions, s2)
     else:
-        where_out = as_positions(lower.where, "where")
-        after = lower_variance_after(lower, testbed, positions, s2)
+        where_out = as_positions(chain[-1].where, "where")
+        after = lower_variance_after(chain, testbed, positions, s2)
     v = np.clip(np.asarray(var), 0.0, None)
     return Plan(
         positions,
@@ -257,6 +289,58 @@ class _LowerTarget:
         return self.var
 
 
+class _ChainTarget:
+    """The last stage's variance at its ``where`` (m,), of a chain of two or more stages
+    below stage 0, each one's noise holding the posterior covariance of the one above at its
+    upper readings. It keeps every stage's target covariance ``A`` and its factor: a
+    measurement's reduction ``w w^T`` at stage 1 passes down as ``v v^T`` (module
+    docstring), lowering each ``A`` by a rank-one term. O(n^2 c + n^3) per stage and
+    measurement, ``c`` candidates."""
+
+    def __init__(self, chain: tuple[LowerStage, ...], S: np.ndarray) -> None:
+        last = chain[-1]
+        g = as_positions(last.where, "where")
+        self.Ku = [
+            a.gp.kernel(as_positions(b.upper, "upper"), a.gp.x)
+            for a, b in itertools.pairwise(chain)
+        ]
+        self.Kg = last.gp.kernel(g, last.gp.x)
+        W = solve_triangular(last.gp.L, self.Kg.T, lower=True, check_finite=False)
+        self.var = last.gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
+        self.A = [s.gp.L @ s.gp.L.T for s in chain]
+        self.L = [s.gp.L for s in chain]
+
+    def _down(self, W: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+        """Reductions ``W`` (n1, c) of stage 0's covariance at stage 1's upper readings,
+        passed down: the last stage's ``A^-1 W`` and ``1 - diag(W^T A^-1 W)``, and each
+        stage's reductions."""
+        passed = []
+        for k, L in enumerate(self.L):
+            passed.append(W)
+            P = linalg.cho_solve(L, W)
+            beta = np.clip(1.0 - np.einsum("ij,ij->j", W, P), 1e-12, None)
+            if k == len(self.L) - 1:
+                return P, beta, passed
+            W = self.Ku[k] @ P / np.sqrt(beta)
+        raise AssertionError("unreachable")
+
+    def gains(self, S: np.ndarray, d: np.ndarray) -> np.ndarray:
+        P, beta, _ = self._down(S / np.sqrt(d))
+        G = self.Kg @ P
+        return np.einsum("ij,ij->j", G, G) / beta
+
+    def update(self, S: np.ndarray, j: int, d: float, col_c: np.ndarray) -> None:
+        P, beta, passed = self._down(S[:, j : j + 1] / np.sqrt(d))
+        for k, w in enumerate(passed):
+            self.A[k] -= w @ w.T
+            self.L[k] = _factor(self.A[k], f"the target covariance of stage {k + 1}")
+        Ka = (self.Kg @ P)[:, 0]
+        self.var = self.var - Ka * Ka / float(beta[0])
+
+    def variance(self) -> np.ndarray:
+        return self.var
+
+
 def _factor(A: np.ndarray, what: str) -> np.ndarray:
     """Cholesky factor of a covariance ``what`` the planned measurements change; refused
     (no jitter: it would change the plan's figures unseen) when singular to round-off."""
@@ -292,35 +376,47 @@ def _enlarged_factor(testbed: FittedGP, positions: np.ndarray, s2: float) -> np.
 
 
 def lower_variance_after(
-    lower: LowerStage, testbed: FittedGP, positions: object, noise_variance: float
+    lower: LowerStage | Sequence[LowerStage],
+    testbed: FittedGP,
+    positions: object,
+    noise_variance: float,
 ) -> np.ndarray:
     """The lower stage's posterior variance at ``lower.where`` (m,) once stage 0 has the
     reference measurements at ``positions`` (k,), all at once: stage 0's covariance at
     ``lower.upper`` falls by ``Z Z^T`` (``Z = C_uk R^-T``, ``R R^T = C_kk + s2 I``, ``C``
     stage 0's posterior covariance), and the lower stage's target covariance ``A`` with
     it; by the Woodbury identity the variance falls by the diagonal of
-    ``K_g A^-1 Z (I - Z^T A^-1 Z)^-1 Z^T A^-1 K_g^T`` over its value now. O(n^2 k)."""
+    ``K_g A^-1 Z (I - Z^T A^-1 Z)^-1 Z^T A^-1 K_g^T`` over its value now. O(n^2 k). Of a
+    chain (a list from stage 1 down), the last stage's: each stage's posterior covariance
+    at the next one's upper readings falls by ``Z' Z'^T``, ``Z' = K_u A^-1 Z M^-T``
+    (``M M^T = I - Z^T A^-1 Z``), down to the last."""
+    chain = _chain(lower)
     pos = as_positions(positions, "positions")
-    up = as_positions(lower.upper, "upper")
-    gp = lower.gp
-    g = as_positions(lower.where, "where")
-    Kg = gp.kernel(g, gp.x)
-    W = solve_triangular(gp.L, Kg.T, lower=True, check_finite=False)
-    var = gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
+    last = chain[-1]
+    g = as_positions(last.where, "where")
+    Kg = last.gp.kernel(g, last.gp.x)
+    W = solve_triangular(last.gp.L, Kg.T, lower=True, check_finite=False)
+    var = last.gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
     if pos.size == 0:
         return var
+    up = as_positions(chain[0].upper, "upper")
     Vu, Vk = testbed.whitened(up), testbed.whitened(pos)
     Cuk = testbed.kernel(up, pos) - Vu.T @ Vk
     Ckk = testbed.kernel(pos) - Vk.T @ Vk
     Ckk.flat[:: pos.size + 1] += noise_variance
     R = _factor(Ckk, "stage 0's covariance at the new points")
     Z = solve_triangular(R, Cuk.T, lower=True, check_finite=False).T  # (n, k)
-    Q = linalg.cho_solve(gp.L, Z)
-    M = -(Z.T @ Q)
-    M.flat[:: pos.size + 1] += 1.0
-    Lm = _factor(0.5 * (M + M.T), "the lower stage's target covariance")
-    T = solve_triangular(Lm, (Kg @ Q).T, lower=True, check_finite=False)
-    return var - np.einsum("ij,ij->j", T, T)
+    for k, stage in enumerate(chain):
+        Q = linalg.cho_solve(stage.gp.L, Z)
+        M = -(Z.T @ Q)
+        M.flat[:: pos.size + 1] += 1.0
+        Lm = _factor(0.5 * (M + M.T), "the lower stage's target covariance")
+        if k == len(chain) - 1:
+            T = solve_triangular(Lm, (Kg @ Q).T, lower=True, check_finite=False)
+            return var - np.einsum("ij,ij->j", T, T)
+        Ku = stage.gp.kernel(as_positions(chain[k + 1].upper, "upper"), stage.gp.x)
+        Z = solve_triangular(Lm, (Ku @ Q).T, lower=True, check_finite=False).T
+    raise AssertionError("unreachable")
 
 
 def find_gaps(

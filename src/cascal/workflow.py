@@ -781,9 +781,9 @@ def plan_measurements(
 ) -> MeasurementPlan:
     """Propose ``k`` further reference measurements of the model's stage 0 (the test bed).
 
-    The target is, for a ``bayes`` model of two or more stages, stage 1's uncertainty over
-    its readings (stage 0's covariance is part of its noise; with three or more stages
-    stage 1 is not the device: the target stops there); for a
+    The target is, for a ``bayes`` model of two or more stages, the device's (the last
+    stage's) uncertainty over its readings (stage 0's covariance is part of stage 1's
+    noise, and each stage's of the next one's); for a
     ``homoscedastic`` one, stage 0's uncertainty at stage 1's test-bed readings; for a
     one-stage model, stage 0's uncertainty over ``where`` (default: its readings' span, one
     turn for a periodic model). Periodic models get their proposals on one turn.
@@ -836,33 +836,38 @@ def plan_measurements(
             f"where (--where): only for a one-stage model; this one has {len(model.data)} "
             "stages, and stage 1's readings say where the test bed is used"
         )
-    lower, name = model.fitted.models[1], model.data[1].name
-    upper = model.data[1].y
+    name = model.data[1].name
     if model.method == "bayes":
-        x1 = model.data[1].x
-        device = len(model.data) == 2  # else stage 1 sits between the test bed and the device
-        measured = measured_arc(model) if device else None
+        last = len(model.data) - 1
+        xd, name = model.data[last].x, model.data[last].name
+        measured = measured_arc(model)
         if period is None:
-            grid = np.linspace(float(x1.min()), float(x1.max()), _PLAN_TARGET)
-            span1 = f"range {range_text(float(grid[0]), float(grid[-1]))} {unit}"
+            grid = np.linspace(float(xd.min()), float(xd.max()), _PLAN_TARGET)
+            span = f"range {range_text(float(grid[0]), float(grid[-1]))} {unit}"
         elif measured is None:
             grid = np.linspace(0.0, period, _PLAN_TARGET, endpoint=False)
-            span1 = f"full turn (period {period:g})"
+            span = f"full turn (period {period:g})"
         else:  # the measured part of the turn
             grid = np.mod(np.linspace(*measured, _PLAN_TARGET), period)
-            span1 = arc_text(model)
-        target = LowerStage(lower, upper, grid)  # type: ignore[arg-type]
-        plan = plan_reference(
-            testbed, candidates, k, lower=target, noise_variance=s2, progress=progress
-        )
-        what = f"stage 1 ({name})'s uncertainty over its calibrated {span1}"
-        if not device:  # (a report review: its span was called the calibrated range)
-            span1 = f"readings' {span1}" if period is None else span1
-            what = (
-                f"stage 1 ({name})'s uncertainty over its {span1} (of {len(model.data)} "
-                "stages, the one below the test bed; not the device's, further down)"
+            span = arc_text(model)
+        # the chain from stage 1 down: each stage's covariance where the next one reads it
+        chain = [
+            LowerStage(
+                model.fitted.models[j],  # type: ignore[arg-type]
+                model.data[j].y,
+                model.data[j + 1].y if j < last else grid,
             )
+            for j in range(1, last + 1)
+        ]
+        plan = plan_reference(
+            testbed, candidates, k, lower=chain, noise_variance=s2, progress=progress
+        )
+        what = f"stage {last} ({name})'s uncertainty over its calibrated {span}"
+        if last > 1:
+            through = "stage 1" if last == 2 else f"stages 1 to {last - 1}"
+            what += f" (the device; the test bed's covariance passes down through {through})"
         return MeasurementPlan(plan, intervals, candidates.size, what, name)
+    upper = model.data[1].y
     plan = plan_reference(testbed, candidates, k, where=upper, noise_variance=s2, progress=progress)
     what = f"stage 0's uncertainty at the test-bed readings of stage 1 ({name})"
     return MeasurementPlan(plan, intervals, candidates.size, what, None)
