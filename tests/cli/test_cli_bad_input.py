@@ -58,6 +58,11 @@ FIT_CASES = {
         ["--kernel", "periodic", "--period", "2"],
         ["row 5", "span 3", "--period (2)", "one turn"],
     ),
+    "rotary_closure": (  # a turn's readings and the start read again at its end
+        "enc,ref\n0.0012,0\n90.0009,90\n180.0012,180\n270.0015,270\n360.0012,360\n",
+        ["--kernel", "periodic", "--period", "360"],
+        ["row 6", "rows 2 and 6 read 0.0012 and 360.0012", "a closure reading", "--exclude"],
+    ),
     "too_few_positions": ("a,b\n1,1\n1,1.1\n2,2\n", [], ["3 or more distinct positions"]),
     "extra_cell": ("a,b\n1,1\n2,2,7\n3,3\n", [], ["row 3", "extra cells"]),
     "missing_cell": ("a,b\n1,1\n2\n3,3\n", [], ["row 3", "missing cells"]),

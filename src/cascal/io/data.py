@@ -250,6 +250,18 @@ def read_stage(
     check_units(x, y, table.source.columns, name)  # (before a rotary stage's unwrapping)
     if period is not None:
         span = float(x.max() - x.min())
+        lo, hi = int(np.argmin(x)), int(np.argmax(x))
+        if period <= span < period * (1 + 1 / 36):  # (a closure: the start read again)
+            raise InputError(
+                f"rows {int(table.rows[lo])} and {int(table.rows[hi])} read "
+                f"{float(x[lo])!r} and {float(x[hi])!r} in column "
+                f"{table.source.columns[0]!r}, a turn apart (--period {period:g}) or a little "
+                "more: a closure reading of the start? A rotary stage's readings lie within "
+                "one turn, and to the periodic kernel the two are one position: leave one "
+                f"out (--exclude {name}:{int(table.rows[hi])})",
+                file=name,
+                row=int(table.rows[hi]),
+            )
         if span >= period:
             raise InputError(
                 f"readings in column {table.source.columns[0]!r} span {span:.6g}, a full "
