@@ -274,3 +274,46 @@ def test_a_drifted_device_leaves_the_band_and_an_unchanged_one_does_not():
         c = compare_models(old, fit_model([data], prefix=testbed, n_restarts=1))
         found[drift] = (c.changed, c.summary()["max_z"], c.k_band)
     assert found[0.0][0] is False and found[2.5e-4][0] is True, found
+
+
+def test_a_limit_is_judged_with_the_change_s_uncertainty():
+    """``against(T)``: shown beyond T where |change| - k_band u > T, shown within where
+    |change| + k_band u <= T everywhere, else undecided; five independent points of u = 1
+    mm (k_band about 2.57, Sidak's factor)."""
+    r = np.linspace(0.0, 1.0, 5)
+    change = np.array([0.0, 1.0, 2.0, 5.0, -6.0]) * 1e-3
+    c = compare(r, r, np.full(5, 1e-3), r + change, np.zeros(5), change_cov=np.eye(5) * 1e-6)
+    k = c.k_band
+    assert 2.5 < k < 2.65
+    v = c.against(2e-3)  # 6 - k and 5 - k mm exceed 2 mm; k u alone reaches 2 mm everywhere
+    assert (v.verdict, v.share_beyond, v.share_unresolved) == ("beyond", 0.4, 1.0)
+    v = c.against(4e-3)  # 6 - k < 4 < 6 + k: not shown either way; 2, 5 and 6 mm not within
+    assert (v.verdict, v.share_beyond, v.share_not_within, v.share_unresolved) == (
+        "undecided", 0.0, 0.6, 0.0,
+    )  # fmt: skip
+    v = c.against(9e-3)  # 6 + k < 9
+    assert (v.verdict, v.share_not_within) == ("within", 0.0)
+    lut = compare(r, r, np.full(5, np.nan), r + change, np.full(5, np.nan))
+    assert lut.against(5.5e-3).verdict == "beyond" and lut.against(6.01e-3).verdict == "within"
+    with pytest.raises(InputError, match="limit: expected a finite number > 0"):
+        c.against(0.0)
+
+
+def test_a_limit_s_wrong_verdicts_are_rare():
+    """Over 4000 draws of the change of a correlated 60-point comparison: an unchanged
+    device is shown beyond even a tiny limit only as often as it leaves the band (about 5
+    %: pointwise at k = 2 it would be far more often), and a change at the limit everywhere
+    is shown within it in under 2.5 % (its estimate must fall k_band u below it at every
+    reading)."""
+    r = np.linspace(0.0, 1.0, 60)
+    sd = 1e-4 * (1.0 + r)
+    cov = np.exp(-0.5 * ((r[:, None] - r[None, :]) / 0.1) ** 2) * np.outer(sd, sd)
+    cov += np.diag(1e-3 * sd**2)
+    c = compare(r, r, sd, r, np.zeros(60), change_cov=cov)
+    t = 1e-6 * float(np.max(c.u))
+    draws = np.random.default_rng(1).multivariate_normal(np.zeros(60), cov, size=4000)
+    beyond = [dataclasses.replace(c, change=e).against(t).verdict == "beyond" for e in draws]
+    band = [dataclasses.replace(c, change=e).changed for e in draws]
+    assert np.mean(beyond) <= np.mean(band) < 0.065 and np.mean(beyond) > 0.035
+    within = [dataclasses.replace(c, change=t + e).against(t).verdict == "within" for e in draws]
+    assert np.mean(within) < 0.025

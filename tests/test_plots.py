@@ -67,7 +67,10 @@ def test_change_draws_the_max_change_and_breaks_between_two_stretches():
     (line,) = _lines(ax, "±max change 0.36 arcsec")
     assert line.get_ydata()[0] == pytest.approx(0.36)
     title = " ".join(ax.get_title().split("\n"))  # (wrapped to the figure's width)
-    assert title.endswith("beyond the max change; beyond the band over 0.0 % of the range")
+    # (2e-4 deg against 1e-4 is not beyond it by more than the band, 3.2 u: not shown within)
+    assert title.endswith(
+        "not shown within the max change; beyond the band over 0.0 % of the range"
+    )
     (change,) = _lines(ax, "change of the correction")
     x = np.asarray(change.get_xdata())
     assert np.isnan(x[30]) and x.size == 81 and np.all(np.isfinite(np.delete(x, 30)))
@@ -76,6 +79,7 @@ def test_change_draws_the_max_change_and_breaks_between_two_stretches():
     far = compare(r, r, u, r + 2e-3 * np.sin(r / 20.0), u, period=360.0)
     ax = plot_change(far, scale=3600.0, unit="arcsec", limit=1e-4).axes[0]
     assert len(_lines(ax, "beyond the band")) == 1 and not _lines(ax, "beyond it")
+    assert "; beyond the max change;" in " ".join(ax.get_title().split("\n"))
     ok = plot_change(c, scale=3600.0, unit="arcsec", limit=1e-3).axes[0]
     assert "within the max change" in ok.get_title()
     far = plot_change(c, scale=3600.0, unit="arcsec", limit=1.0).axes[0]  # 3600 arcsec

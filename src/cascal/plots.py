@@ -473,8 +473,8 @@ def plot_change(
             ax.axhline(sign * limit * scale, color="C1", ls="--", lw=1.0, label=label)
         if off:
             ax.set_ylim(-1.15 * top, 1.15 * top)
-        verdict = "beyond" if s["max_change"] > limit else "within"
-        title += f"; {verdict} the max change"
+        verdict = c.against(limit).verdict  # (the change's uncertainty counted)
+        title += f"; {'not shown within' if verdict == 'undecided' else verdict} the max change"
     if band is not None and beyond is not None:
         if np.any(np.isfinite(beyond)):
             # (a review: "beyond it", next to the max change, read as beyond that)

@@ -32,6 +32,7 @@ __all__ = [
     "BAND_LEVEL",
     "COVERAGE_FACTOR",
     "Comparison",
+    "LimitVerdict",
     "Verification",
     "band_factor",
     "compare",
@@ -289,6 +290,32 @@ class Comparison:
         """Whether the change leaves the simultaneous band somewhere; None without u."""
         return bool(np.max(self.z) > self.k_band) if self.has_u else None
 
+    def against(self, limit: float) -> LimitVerdict:
+        """The change judged against a largest allowed change ``limit`` (> 0, the readings'
+        unit) with its uncertainty, as ISO 14253-1 judges a tolerance: shown beyond it
+        where ``|change| - k_band u > limit``, shown within it where ``|change| + k_band u
+        <= limit`` at every reading; the simultaneous band, so that each holds over the
+        whole range with 95 % probability. Without u (lookup tables), the change alone."""
+        if not (0.0 < limit < math.inf):
+            raise InputError(f"limit: expected a finite number > 0, got {limit!r}")
+        a = np.abs(self.change)
+        if not self.has_u:
+            out = a > limit
+            verdict = "beyond" if np.any(out) else "within"
+            return LimitVerdict(
+                float(limit), verdict, float(np.mean(out)), 0.0, float(np.mean(out))
+            )
+        margin = self.k_band * self.u
+        beyond, not_within = a - margin > limit, a + margin > limit
+        verdict = "beyond" if np.any(beyond) else "undecided" if np.any(not_within) else "within"
+        return LimitVerdict(
+            float(limit),
+            verdict,
+            float(np.mean(beyond)),
+            float(np.mean(margin >= limit)),
+            float(np.mean(not_within)),
+        )
+
     def summary(self) -> dict[str, float | None]:
         """RMS and largest |change| and the reading of the largest; the largest
         ``|change| / u`` and its reading, and the share of the grid beyond the band and
@@ -310,6 +337,28 @@ class Comparison:
             out["share_beyond_band"] = float(np.mean(z > self.k_band))
             out["share_beyond_U"] = float(np.mean(z > self.k))
         return out
+
+
+@dataclass(frozen=True, slots=True)
+class LimitVerdict:
+    """A comparison judged against a largest allowed change (:meth:`Comparison.against`).
+
+    Attributes:
+        limit: The largest change allowed, the readings' unit.
+        verdict: ``"within"`` (shown within it at every reading), ``"beyond"`` (shown
+            beyond it somewhere) or ``"undecided"`` (neither: the change's uncertainty
+            leaves it open); without u, ``"within"`` or ``"beyond"`` by the change alone.
+        share_beyond: Share of the readings where the change is shown beyond the limit.
+        share_unresolved: Share where the band alone reaches the limit (``k_band u >=
+            limit``): there not even an unchanged device is shown within it.
+        share_not_within: Share where the change is not shown within the limit.
+    """
+
+    limit: float
+    verdict: str
+    share_beyond: float
+    share_unresolved: float
+    share_not_within: float
 
 
 def band_factor(

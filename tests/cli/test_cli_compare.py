@@ -14,21 +14,23 @@ from cascal.workflow import compare_models
 
 @pytest.fixture(scope="module")
 def models(linear_files, tmp_path_factory):
-    """The linear case's model, and a recalibration after the device drifted by up to
-    80 µm (its test-bed column moved by 80 µm times (2 x - 1))."""
+    """The linear case's model, and recalibrations after the device drifted by up to
+    80 µm and 600 µm (its test-bed column moved by 80 µm or 600 µm times (2 x - 1))."""
     (ref, dev), _ = linear_files
     tmp = tmp_path_factory.mktemp("compare")
     lines = dev.read_text().splitlines()
-    moved = [lines[0]]
-    for line in lines[1:]:
-        x, y = map(float, line.split(","))
-        moved.append(f"{x!r},{y + 8e-5 * (2 * x - 1)!r}")
+    for size, drifted in ((8e-5, tmp / "testbed_device_2.csv"), (6e-4, tmp / "far.csv")):
+        moved = [lines[0]]
+        for line in lines[1:]:
+            x, y = map(float, line.split(","))
+            moved.append(f"{x!r},{y + size * (2 * x - 1)!r}")
+        drifted.write_text("\n".join(moved) + "\n")
     drifted = tmp / "testbed_device_2.csv"
-    drifted.write_text("\n".join(moved) + "\n")
     out = {}
     for name, files, extra in (
         ("old", (ref, dev), ()),
         ("new", (ref, drifted), ()),
+        ("far", (ref, tmp / "far.csv"), ()),
         ("lut", (ref, drifted), ("--method", "lut")),
         ("mm", (ref, drifted), ("--unit", "mm")),
     ):
@@ -63,16 +65,45 @@ def test_compare_prints_and_writes_the_library_s_numbers(models):
         np.testing.assert_allclose(got, col, rtol=0, atol=1e-6 * scale)
 
 
-def test_max_change_sets_the_exit_status(models):
+def test_max_change_counts_the_change_s_uncertainty(models):
+    """--max-change T passes (status 0) where |change| + k_band u <= T everywhere, fails
+    where |change| - k_band u > T somewhere, and is not shown within otherwise (status 3,
+    with a warning where the band alone reaches T). A review: an unchanged device failed a
+    T below the band in 22 of 40 recalibrations, by the change's noise alone."""
     _, m = models
-    c = compare_models(load_model(m["old"]), load_model(m["new"]))
-    largest = c.summary()["max_change"]
-    bad = run_cascal("compare", m["old"], m["new"], "--max-change", f"{largest / 2:.6g}")
-    assert bad.returncode == 3, bad.stderr
-    share = np.mean(np.abs(c.change) > float(f"{largest / 2:.6g}"))
-    assert f"over {100 * share:.1f} % of the range" in bad.stdout
-    good = run_cascal("compare", m["old"], m["new"], "--max-change", f"{largest * 2:.6g}")
-    assert good.returncode == 0 and "Within --max-change" in good.stdout
+    c = compare_models(load_model(m["old"]), load_model(m["far"]))
+    a, margin = np.abs(c.change), c.k_band * c.u
+    assert np.max(a - margin) > 0  # (the drift is beyond the band somewhere)
+
+    def run(t):
+        return run_cascal("compare", m["old"], m["far"], "--max-change", f"{t:.6g}"), float(
+            f"{t:.6g}"
+        )
+
+    res, t = run(0.5 * float(np.max(a - margin)))
+    assert res.returncode == 3, res.stderr
+    share = np.mean(a - margin > t)
+    assert f"Changed by more than --max-change {t:g} m, beyond its uncertainty" in res.stdout
+    assert f"over {100 * share:.1f} % of the range (largest change" in res.stdout
+    assert "is within the band" in res.stderr  # (t is below the band's reach too)
+    res, t = run(1.01 * float(np.max(a + margin)))
+    assert res.returncode == 0, res.stderr
+    assert f"Within --max-change {t:g} m everywhere, the change's uncertainty counted" in res.stdout
+    assert "within the band" not in res.stderr
+    res, t = run(0.5 * float(np.max(a - margin) + np.max(a + margin)))  # between the two
+    assert np.max(a - margin) <= t < np.max(a + margin)
+    assert res.returncode == 3, res.stderr
+    share = np.mean(a + margin > t)
+    assert (
+        f"Not shown within --max-change {t:g} m: |change| + {c.k_band:.2f} u exceeds it over "
+        in (res.stdout)
+    )
+    assert f"{100 * share:.1f} % of the range, and nowhere" in res.stdout
+    unresolved = np.mean(margin >= t)
+    if unresolved > 0:
+        assert f"over {100 * unresolved:.1f} % of the range: there the two calibrations" in (
+            res.stderr
+        )
 
 
 def test_lookup_tables_give_the_change_alone(models):
