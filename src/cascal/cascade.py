@@ -13,17 +13,19 @@ whose correction comes from stage k - 1 evaluated at the upper sensor's readings
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .baselines import OffsetTable, fit_table
-from .errors import CascalError, InputError
+from .errors import CascalError, CascalWarning, InputError
 from .gp import FittedGP, fit_gp, single_threaded_blas
 from .kernels import Kernel, make_kernel
 from .means import make_mean
 from .noise import Dense, Noise, as_noise
+from .text import HOMOSCEDASTIC_CAUTION
 from .validation import (
     as_positions,
     as_readings,
@@ -115,6 +117,14 @@ class FittedCascade:
             return scalar_out(model(r), scalar)
         if not return_std:
             return scalar_out(model.predict(r), scalar)
+        if self.method == "homoscedastic" and len(self.models) > 1:  # (a review: the
+            # command line warned of this u, Python did not)
+            warnings.warn(
+                f"the u of method 'homoscedastic' {HOMOSCEDASTIC_CAUTION}; for u, use method "
+                "'bayes'",
+                CascalWarning,
+                stacklevel=2,
+            )
         mean, std = model.predict(r, return_std=True)
         return scalar_out(mean, scalar), scalar_out(std, scalar)
 
