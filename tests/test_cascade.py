@@ -159,7 +159,9 @@ def test_the_homoscedastic_u_comes_with_its_caution(trial, bayes, homo):
 
     from cascal.errors import CascalWarning
 
-    with pytest.warns(CascalWarning, match=r"homoscedastic' leaves the test bed's correlated"):
+    with pytest.warns(
+        CascalWarning, match=r"homoscedastic' leaves the correlated error of the stages above"
+    ):
         _, u = homo.correct(0.5, return_std=True)
     assert u == homo.device.predict(np.array([0.5]), return_std=True)[1][0]
     one = Cascade([trial.d2], "homoscedastic", n_restarts=1, seed=0).fit()

@@ -89,15 +89,26 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         z_at = _at(parts, s["max_z_at"])
         print(f"  largest |change| / u {s['max_z']:.3g}, at reading {z_at}; {band}")
         if c.changed:
-            same_device = np.array_equal(old.data[-1].x, new.data[-1].x) and np.array_equal(
-                old.data[-1].y, new.data[-1].y
+            differ = [
+                k
+                for k, (a, b) in enumerate(zip(old.data, new.data, strict=True))
+                if not (np.array_equal(a.x, b.x) and np.array_equal(a.y, b.y))
+            ]
+            # (a review: a test bed's recalibration, the device file unchanged, had been
+            # called a change of the device; another: a middle stage's, the test bed's)
+            above = ", ".join(
+                "stage 0, the test bed's calibration"
+                if k == 0
+                else f"stage {k}, {new.data[k].name}"
+                for k in differ
             )
-            cause = (  # (a review: a test bed's recalibration, the device file unchanged,
-                # had been called a change of the device)
-                "the device's readings are the same in both models, so the stages above it "
-                "changed (the test bed's calibration), not the device"
-                if same_device and len(old.data) > 1
+            cause = (
+                f"the device's readings are the same in both models, so the stages above it "
+                f"changed ({above}), not the device"
+                if differ and differ[-1] < len(old.data) - 1
                 else "the device (or its mounting) has changed since the old calibration"
+                if differ
+                else "the two fits of the same readings differ (their settings), not the device"
             )
             print(
                 f"  beyond that band over {100 * s['share_beyond_band']:.1f} % of the range: "

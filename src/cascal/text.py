@@ -25,7 +25,8 @@ __all__ = [
 #: errors in 2000 of the paper's trials, and 42 % in GP-drawn chains with 16 reference
 #: points (24 % in their gap, 16 % beyond them), not 95 %.
 HOMOSCEDASTIC_CAUTION = (
-    "leaves the test bed's correlated error out (the paper's Alternative 1): in simulated "
+    "leaves the correlated error of the stages above the device out (the test bed's; the "
+    "paper's Alternative 1): in simulated "
     "cascades U = 2u covered 66 % of the errors, not 95 %, and as few as 16 % where the "
     "reference did not measure"
 )

@@ -130,10 +130,17 @@ def fit_model(
     if not all_stages:
         raise InputError("expected at least one stage file")
     periodic = kernel == "periodic" and method != "lut"
+    data = head + list(stages)
+    _check_distinct(data)
     if method != "lut":
         for s in stages:
             _check_size(s)
-    if not periodic:
+    if periodic:  # (no range check, whose message names files in reverse order: a review
+        # found rotary chains fitted in any order)
+        for k in range(max(1, len(head)), len(data)):
+            if _reversed(data[k - 1], data[k]):
+                raise InputError(_reverse_order(data[k - 1], data[k]), file=data[k].source.file)
+    else:
         turn = TURNS.get(unit.strip().lower()) if kernel != "periodic" else None
         for k, s in enumerate(stages):
             upper = all_stages[len(head) + k - 1].x if len(head) + k else None
@@ -407,12 +414,7 @@ def _check_inside(
                 "are the two files' readings of this sensor in different units?"
             )
         if above is not None and _reversed(above, stage):
-            advice = (
-                f"the stage files look to be in reverse order ({Path(stage.source.file).name}'s "
-                f"first column, {stage.source.columns[0]}, is the second of "
-                f"{Path(above.source.file).name}): give them from the reference down, the "
-                "file with the reference's readings first"
-            )
+            advice = _reverse_order(above, stage)
         elif turn is not None:
             advice += (
                 "; or, for a rotary axis whose readings wrap at the full turn, fit with the "
@@ -428,6 +430,31 @@ def _check_inside(
             row=int(stage.rows[i]),
             column=stage.source.columns[1],
         )
+
+
+def _reverse_order(above: StageData, stage: StageData) -> str:
+    """The advice where :func:`_reversed` finds two stage files in reverse order."""
+    return (
+        f"the stage files look to be in reverse order ({Path(stage.source.file).name}'s "
+        f"first column, {stage.source.columns[0]}, is the second of "
+        f"{Path(above.source.file).name}): give them from the reference down, the file "
+        "with the reference's readings first"
+    )
+
+
+def _check_distinct(stages: Sequence[StageData]) -> None:
+    """Refuse two stages with the same readings: one stage file given twice (a review: it
+    was fitted as one more stage, the device's error applied twice)."""
+    for j, later in enumerate(stages):
+        for i in range(j):
+            first = stages[i]
+            if np.array_equal(first.x, later.x) and np.array_equal(first.y, later.y):
+                raise InputError(
+                    f"stages {i} and {j} hold the same readings ({first.source.file} and "
+                    f"{later.source.file}): one stage file given twice? Each stage of the "
+                    "chain is its own file, from the reference down",
+                    file=later.source.file,
+                )
 
 
 def _reversed(above: StageData, stage: StageData) -> bool:
@@ -834,7 +861,7 @@ def plan_measurements(
     if where is not None:
         raise InputError(
             f"where (--where): only for a one-stage model; this one has {len(model.data)} "
-            "stages, and stage 1's readings say where the test bed is used"
+            "stages, and the stages below the test bed say where it is used"
         )
     name = model.data[1].name
     if model.method == "bayes":

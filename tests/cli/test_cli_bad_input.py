@@ -452,6 +452,36 @@ def test_stage_files_in_reverse_order_are_named_as_such(tmp_path):
     assert run_cascal("fit", ref, dev, "-o", tmp_path / "m.json").returncode == 0
 
 
+def test_rotary_stage_files_in_reverse_order_and_a_file_given_twice_are_refused(tmp_path):
+    """A chain review's cases: a periodic fit has no range check, so rotary stage files in
+    reverse order were fitted (the reference file taken for the device), and a stage file
+    given twice was fitted as one more stage (the device's error applied twice)."""
+    deg = np.linspace(0.0, 350.0, 36)
+    ref = tmp_path / "ref_tb.csv"
+    ref.write_text(
+        "testbed,reference\n"
+        + "".join(f"{v + 0.01 * float(np.sin(np.radians(v)))!r},{v!r}\n" for v in deg.tolist())
+    )
+    dev = tmp_path / "tb_dev.csv"
+    d = np.linspace(2.0, 357.0, 72)
+    dev.write_text(
+        "device,testbed\n"
+        + "".join(f"{v!r},{v + 0.02 * float(np.cos(np.radians(2 * v)))!r}\n" for v in d.tolist())
+    )
+    rotary = ("--kernel", "periodic", "--period", "360", "--unit", "deg")
+    res = run_cascal("fit", dev, ref, "-o", tmp_path / "m.json", *rotary)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "ref_tb.csv: the stage files look to be in reverse order (ref_tb.csv's first " \
+        "column, testbed, is the second of tb_dev.csv)" in res.stderr  # fmt: skip
+    for extra in (rotary, ()):
+        res = run_cascal("fit", ref, dev, dev, "-o", tmp_path / "m.json", *extra)
+        assert res.returncode == 2 and "Traceback" not in res.stderr
+        assert f"stages 1 and 2 hold the same readings ({dev} and {dev}): one stage file " \
+            "given twice?" in res.stderr  # fmt: skip
+    assert not (tmp_path / "m.json").exists()
+    assert run_cascal("fit", ref, dev, "-o", tmp_path / "m.json", *rotary).returncode == 0
+
+
 def test_a_reading_outside_the_range_above_says_when_it_is_a_mean(tmp_path):
     """A review's case: the message named row 2 and quoted 9.966666666666667e-08, the
     mean of rows 2 to 4, where row 2 holds 0.000000069."""

@@ -60,6 +60,7 @@ def test_command_output_equals_library_in_memory(corrected, linear_files, linear
     np.testing.assert_allclose(table.columns[2], c.u, rtol=0, atol=tol)
 
 
+@pytest.mark.filterwarnings("ignore:the u of method 'homoscedastic'")
 @pytest.mark.parametrize("method", ["bayes", "homoscedastic", "lut"])
 def test_fit_save_load_correct_is_bit_identical(method, linear_files, linear_case, tmp_path):
     files, _ = linear_files
