@@ -39,10 +39,12 @@ def _dense_posterior_cov(gp, a, b):
     return gp.kernel(a, b) - gp.kernel(a, gp.x) @ np.linalg.solve(C, gp.kernel(gp.x, b))
 
 
-def _targets_covariance(old, new, shared):
+def _targets_covariance(old, new, shared, same_file=False):
     """Covariance of the two device fits' targets were the device unchanged, written out:
     one device map (the old fit's prior), each file's white noise, the test bed's posterior
-    covariance at each file's test-bed readings, and between them where it is shared."""
+    covariance at each file's test-bed readings, and between them where it is shared; with
+    ``same_file`` (one device file, the test bed refitted), the file's white noise (one
+    draw) between them too."""
     go, gn = old.fitted.device, new.fitted.device
     x = np.concatenate([go.x, gn.x])
     no = go.x.size
@@ -56,6 +58,10 @@ def _targets_covariance(old, new, shared):
         S = _dense_posterior_cov(old.fitted.models[0], ya, yb)
         C[:no, no:] += S
         C[no:, :no] += S.T
+    if same_file:
+        both = np.sqrt(go.noise_variance * gn.noise_variance) * np.eye(no)
+        C[:no, no:] += both
+        C[no:, :no] += both
     return C
 
 
@@ -78,7 +84,8 @@ def test_change_covariance_against_dense_formulas(pair, which):
     shared = shares_upstream(old, new)
     assert shared == which.startswith("bayes")
     r = np.linspace(*old.calibrated_range, 37)
-    C = _targets_covariance(old, new, shared)
+    # (the homoscedastic pair: one device file, its noise one draw in both)
+    C = _targets_covariance(old, new, shared, same_file=not shared)
     v = np.concatenate([-_weights(old.fitted.device, r), _weights(new.fitted.device, r)])
     expected = v.T @ C @ v
     got = change_covariance(old, new, r, shared=shared)
@@ -317,3 +324,26 @@ def test_a_limit_s_wrong_verdicts_are_rare():
     assert np.mean(beyond) <= np.mean(band) < 0.065 and np.mean(beyond) > 0.035
     within = [dataclasses.replace(c, change=t + e).against(t).verdict == "within" for e in draws]
     assert np.mean(within) < 0.025
+
+
+def test_one_device_file_under_a_recalibrated_test_bed_shares_its_noise():
+    """A user review's leftover: the device file reused under a test bed fitted on other
+    reference data counted the file's noise as two independent draws. It is one: the
+    change's covariance against the dense formulas with that noise shared, and narrower
+    than with it independent; every file the same keeps them independent (compare says
+    so)."""
+    ref, dev = demo_stages()
+    bump = dataclasses.replace(ref, y=ref.y + 3e-5 * np.exp(-(((ref.x - 0.75) / 0.1) ** 2)))
+    old, new = (fit_model([t, dev], n_restarts=1) for t in (ref, bump))
+    assert not shares_upstream(old, new)
+    r = np.linspace(*old.calibrated_range, 37)
+    v = np.concatenate([-_weights(old.fitted.device, r), _weights(new.fitted.device, r)])
+    expected = v.T @ _targets_covariance(old, new, False, same_file=True) @ v
+    got = change_covariance(old, new, r)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-7 * np.abs(expected).max())
+    apart = v.T @ _targets_covariance(old, new, False) @ v
+    assert np.all(np.diag(got) < np.diag(apart))
+    same = change_covariance(old, old, r, shared=True)
+    v = np.concatenate([-_weights(old.fitted.device, r), _weights(old.fitted.device, r)])
+    expected = v.T @ _targets_covariance(old, old, True) @ v
+    np.testing.assert_allclose(same, expected, rtol=0, atol=1e-7 * np.abs(expected).max())

@@ -22,17 +22,14 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from .io.csvout import auto_decimals, write_columns
     from .text import range_ends, range_text
     from .verification import BAND_LEVEL, breaks
-    from .workflow import compare_models, measured_arc
+    from .workflow import compare_models, measured_arc, same_readings
 
     check_outputs(args.output, args.plot, inputs=(args.old, args.new))
     old = load_checked(args.old, o=args.output, plot=args.plot)
     new = load_checked(args.new, o=args.output, plot=args.plot)
     c = compare_models(old, new)
     s, unit = c.summary(), old.unit
-    if all(
-        np.array_equal(a.x, b.x) and np.array_equal(a.y, b.y)
-        for a, b in zip(old.data, new.data, strict=True)
-    ):
+    if all(same_readings(a, b) for a, b in zip(old.data, new.data, strict=True)):
         warn(
             "compare",
             "both models were fitted on the same readings: the band below is what two "
@@ -92,7 +89,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             differ = [
                 k
                 for k, (a, b) in enumerate(zip(old.data, new.data, strict=True))
-                if not (np.array_equal(a.x, b.x) and np.array_equal(a.y, b.y))
+                if not same_readings(a, b)
             ]
             # (a review: a test bed's recalibration, the device file unchanged, had been
             # called a change of the device; another: a middle stage's, the test bed's)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import itertools
 import multiprocessing
 import os
 import warnings
@@ -22,7 +23,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from . import pool
-from .cascade import Cascade
+from .cascade import Cascade, Stage
 from .compensation import MAX_NODES, CompensationTable, compensation_table, in_arc
 from .errors import CascalError, CascalWarning, InputError, NumericalError
 from .gp import FittedGP, pin_blas
@@ -52,6 +53,7 @@ __all__ = [
     "fit_model",
     "measured_arc",
     "plan_measurements",
+    "same_readings",
     "screen_stages",
     "shares_upstream",
     "summarize_device",
@@ -130,16 +132,15 @@ def fit_model(
     if not all_stages:
         raise InputError("expected at least one stage file")
     periodic = kernel == "periodic" and method != "lut"
-    data = head + list(stages)
-    _check_distinct(data)
+    _check_distinct(head + list(stages))
     if method != "lut":
         for s in stages:
             _check_size(s)
     if periodic:  # (no range check, whose message names files in reverse order: a review
         # found rotary chains fitted in any order)
-        for k in range(max(1, len(head)), len(data)):
-            if _reversed(data[k - 1], data[k]):
-                raise InputError(_reverse_order(data[k - 1], data[k]), file=data[k].source.file)
+        for above, below in itertools.pairwise(stages):
+            if _reversed(above, below):
+                raise InputError(_reverse_order(above, below), file=below.source.file)
     else:
         turn = TURNS.get(unit.strip().lower()) if kernel != "periodic" else None
         for k, s in enumerate(stages):
@@ -442,18 +443,23 @@ def _reverse_order(above: StageData, stage: StageData) -> str:
     )
 
 
-def _check_distinct(stages: Sequence[StageData]) -> None:
+def _check_distinct(stages: Sequence[StageData | Stage]) -> None:
     """Refuse two stages with the same readings: one stage file given twice (a review: it
-    was fitted as one more stage, the device's error applied twice)."""
+    was fitted as one more stage, the device's error applied twice). A prefix's stage is a
+    :class:`~cascal.cascade.Stage`, named by its file's name."""
+
+    def file(d: StageData | Stage) -> str:
+        return d.source.file if isinstance(d, StageData) else d.name
+
     for j, later in enumerate(stages):
         for i in range(j):
             first = stages[i]
-            if np.array_equal(first.x, later.x) and np.array_equal(first.y, later.y):
+            if same_readings(first, later):
                 raise InputError(
-                    f"stages {i} and {j} hold the same readings ({first.source.file} and "
-                    f"{later.source.file}): one stage file given twice? Each stage of the "
-                    "chain is its own file, from the reference down",
-                    file=later.source.file,
+                    f"stages {i} and {j} hold the same readings ({file(first)} and "
+                    f"{file(later)}): one stage file given twice? Each stage of the chain is "
+                    "its own file, from the reference down",
+                    file=file(later),
                 )
 
 
@@ -630,10 +636,7 @@ def shares_upstream(a: CalibrationModel, b: CalibrationModel, *, rtol: float = 1
         da, db = a.data[k], b.data[k]
         ha, hb = ma[k].hyperparameters, mb[k].hyperparameters  # type: ignore[union-attr]
         same = (
-            np.array_equal(da.x, db.x)
-            and np.array_equal(da.y, db.y)
-            and (da.noise is None) == (db.noise is None)
-            and (da.noise is None or np.array_equal(da.noise, db.noise))
+            same_readings(da, db)
             and ha.keys() == hb.keys()
             and all(np.isclose(ha[h], hb[h], rtol=rtol, atol=0.0) for h in ha)
         )
@@ -655,8 +658,13 @@ def change_covariance(
     kernel), each file's repeat noise and learned white noise, and the errors of the stage
     above at each file's upper readings (its posterior covariance; the same for either
     method: a ``homoscedastic`` fit ignores them, they are there all the same), between the
-    two files too where that stage is shared (``shared``, :func:`shares_upstream`). The
-    covariance is ``v^T C v``, positive semi-definite by construction.
+    two files too where that stage is shared (``shared``, :func:`shares_upstream`). Where
+    both models hold the same device readings but other stages above (the test bed
+    recalibrated, the device file reused), the file's noise is one draw in both: its repeat
+    noise and white noise (the geometric mean of the two fits' variances) are shared too;
+    where every stage is the same, the two stay independent (what two calibrations would
+    differ by: ``compare`` warns of it). The covariance is ``v^T C v``, positive
+    semi-definite by construction.
     """
     r = np.asarray(readings, dtype=float)
     ga, gb = old.fitted.device, new.fitted.device
@@ -676,9 +684,21 @@ def change_covariance(
         S = ups[0].cross_covariance(ya, yb)
         C[:na, na:] += S
         C[na:, :na] += S.T
+    if same_readings(old.data[-1], new.data[-1]) and not all(
+        same_readings(a, b) for a, b in zip(old.data, new.data, strict=True)
+    ):  # (a user review: a recalibrated test bed over the same device file)
+        N = _own_noise(old) + np.sqrt(ga.noise_variance * gb.noise_variance) * np.eye(na)
+        C[:na, na:] += N
+        C[na:, :na] += N
     v = np.concatenate([-_weights(ga, r), _weights(gb, r)])
     cov = v.T @ (C @ v)
     return 0.5 * (cov + cov.T)
+
+
+def same_readings(a: StageData | Stage, b: StageData | Stage) -> bool:
+    """Whether two stages hold the same readings (and repeat noise)."""
+    na, nb = (np.zeros(d.x.size) if d.noise is None else d.noise for d in (a, b))
+    return bool(np.array_equal(a.x, b.x) and np.array_equal(a.y, b.y) and np.array_equal(na, nb))
 
 
 def _own_noise(model: CalibrationModel) -> np.ndarray:
