@@ -668,3 +668,88 @@ def test_a_model_file_claiming_a_period_its_device_kernel_lacks_is_refused(saved
     _rewrite(saved, lambda doc: doc.update(kernel="periodic", period=360.0))
     with pytest.raises(ModelFileError, match=r"a period of 360\.0, but the device stage's kernel"):
         load_model(saved)
+
+
+def test_edits_that_keep_the_sampled_checks_are_refused(saved):
+    """A fuzz review's forgeries with the checksum recomputed, each of which loaded and
+    moved corrections or u with exit 0: a GP stage's targets and prior mean moved by 1 mm
+    together (every correction 1 mm off), one factor entry of 1e154 (the round-off
+    allowance overflowed to infinity and passed anything), and a row of the factor rotated
+    where neither the diagonal nor the first, middle and last columns once checked see it
+    (the weights solved again for it)."""
+
+    def targets(d) -> None:
+        m = d["stages"][1]["model"]
+        m["targets"] = [t + 1e-3 for t in m["targets"]]
+        m["mean"]["offset"] += 1e-3
+
+    _rewrite(saved, targets)
+    with pytest.raises(ModelFileError, match=r"stage 1: its targets are not the stage above"):
+        load_model(saved)
+
+
+def _factor_edit(saved, tmp_path, edit):
+    path = tmp_path / "edited.json"
+    path.write_text(saved.read_text())
+
+    def change(d) -> None:
+        m = d["stages"][1]["model"]
+        n = len(m["cholesky"])
+        L = np.zeros((n, n))
+        for i, r in enumerate(m["cholesky"]):
+            L[i, : i + 1] = r
+        edit(L)
+        x = np.array(d["stages"][1]["x"])
+        r = np.array(m["targets"]) - (m["mean"]["slope"] * x + m["mean"]["offset"])
+        m["alpha"] = np.linalg.solve(L.T, np.linalg.solve(L, r)).tolist()
+        m["cholesky"] = [L[i, : i + 1].tolist() for i in range(n)]
+
+    _rewrite(path, change)
+    return path
+
+
+def test_a_factor_edited_out_of_sight_of_fixed_columns_is_refused(saved, tmp_path):
+    def huge(L) -> None:
+        L[5, 3] = 1e154
+
+    with pytest.raises(ModelFileError, match=r"do not belong to one fit|does not factorise"):
+        load_model(_factor_edit(saved, tmp_path, huge))
+
+    def rotate(L) -> None:  # row i in a plane orthogonal to e_0, e_i and the rows 0, n/2, n-1
+        n = L.shape[0]
+        i = n - 3
+        C = np.array([np.eye(i + 1)[0], np.eye(i + 1)[i], L[n // 2, : i + 1], L[n - 1, : i + 1]])
+        free = np.linalg.qr(C.T, mode="complete")[0][:, 4:6]
+        row = L[i, : i + 1]
+        a, b = row @ free
+        turned = row - a * free[:, 0] - b * free[:, 1] - b * free[:, 0] + a * free[:, 1]
+        np.testing.assert_allclose(turned @ turned, row @ row, rtol=1e-12)
+        L[i, : i + 1] = turned
+
+    path = _factor_edit(saved, tmp_path, rotate)
+    doc = json.loads(path.read_text())
+    old = json.loads(saved.read_text())["stages"][1]["model"]["cholesky"]
+    new = doc["stages"][1]["model"]["cholesky"][-3]
+    assert max(abs(a - b) for a, b in zip(new, old[-3], strict=True)) > 0
+    with pytest.raises(ModelFileError, match=r"cholesky does not factorise the covariance"):
+        load_model(path)
+
+
+def test_a_lone_surrogate_is_refused_and_other_names_are_kept(saved, tmp_path):
+    """A fuzz review's case: a file name holding "\\ud800" (valid JSON) loaded, and info,
+    plan, compare and report printed it with a traceback. A name with an emoji (a pair, as
+    JSON escapes it) and one with a byte that is not UTF-8 (U+DC80 to U+DCFF, as Python
+    reads such a file name) load."""
+    for name, ok in (("a\ud800.csv", False), ("\U0001f600.csv", True), ("x\udcff.csv", True)):
+        path = tmp_path / "named.json"
+        path.write_text(saved.read_text())
+
+        def rename(d, name=name) -> None:
+            d["provenance"]["inputs"][0]["file"] = name
+
+        _rewrite(path, rename)
+        if ok:
+            assert load_model(path).sources[0].file == name
+        else:
+            with pytest.raises(ModelFileError, match=r"a text holds a lone surrogate"):
+                load_model(path)
