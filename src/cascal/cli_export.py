@@ -108,6 +108,8 @@ def _identifier(stem: str) -> str:
 
 def add_export_parser(sub) -> None:
     """Register ``cascal export`` on the subparsers ``sub``."""
+    from .cli import real
+
     what = "write a model's correction as a compensation table (C header or CSV)"
     p = sub.add_parser(
         "export",
@@ -123,7 +125,7 @@ def add_export_parser(sub) -> None:
     )
     p.add_argument(
         "--tolerance",
-        type=float,
+        type=real,
         default=None,
         help="largest interpolation error, in the model's unit (default: a tenth of the "
         "smallest standard uncertainty; required for lut models)",

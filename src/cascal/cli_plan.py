@@ -120,12 +120,13 @@ def _check_reach(model, reach: list[tuple[float, float]] | None, warn) -> None:
 
 def _interval(text: str, option: str) -> tuple[float, float]:
     """``LO:HI`` (or a single reading ``X``) as a checked pair of floats."""
+    from .cli import as_number
     from .errors import InputError
     from .planning import check_interval
 
     parts = text.split(":")
     try:
-        values = [float(p) for p in parts]
+        values = [as_number(p) for p in parts]
     except ValueError:
         values = []
     if len(values) not in (1, 2) or len(values) != len(parts):

@@ -334,6 +334,29 @@ def test_restarts_beyond_the_cap_are_refused(tmp_path):
     assert not (tmp_path / "m.json").exists()
 
 
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (("--restarts", "\uff15"), "argument --restarts: expected a whole number, got '\uff15'"),
+        (("--seed", "1_000"), "argument --seed: expected a whole number, got '1_000'"),
+        (("--period", "3_60", "--kernel", "periodic"), "argument --period: expected a number"),
+        (("--exclude", "s.csv:1_0"), "--exclude s.csv:1_0: expected row numbers"),
+        (("--restarts", "abc"), "argument --restarts: expected a whole number, got 'abc'"),
+    ],
+)
+def test_options_take_numbers_as_csv_cells_write_them_in_one_line(tmp_path, args, words):
+    """A fuzz review: options took full-width digits and digit-group underscores, which
+    the CSV reader refuses, and argparse's errors came under a usage block of 3 to 6
+    lines; they are refused in one line now."""
+    stage = tmp_path / "s.csv"
+    stage.write_text(GOOD)
+    res = run_cascal("fit", stage, "-o", tmp_path / "m.json", *args)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert words in res.stderr and "\n" not in res.stderr.strip(), res.stderr
+    assert res.stderr.startswith("cascal fit: error: ")
+    assert not (tmp_path / "m.json").exists()
+
+
 @pytest.mark.parametrize("option", ["--unit=--", "-o=--", "--restarts=--", "--seed=--"])
 def test_an_option_given_as_equals_dashdash_is_refused(tmp_path, option):
     """A fuzzing review's case: ``--unit=--`` reached the command as an empty list

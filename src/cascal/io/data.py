@@ -32,6 +32,7 @@ __all__ = [
     "StageData",
     "Table",
     "check_units",
+    "is_number",
     "read_readings",
     "read_stage",
     "read_table",
@@ -518,7 +519,7 @@ def _header(first: str, delim: str, name: str) -> list[str]:
         header = [c.strip() for c in next(csv.reader([first], delimiter=delim))]
     except csv.Error as exc:
         raise InputError(f"the header row is not readable CSV ({exc})", file=name, row=1) from None
-    if all(_is_number(c) for c in header):
+    if all(is_number(c) for c in header):
         raise InputError(
             f"expected a header row with column names, got numbers ({first.strip()!r}); "
             "add a first line naming the columns",
@@ -785,7 +786,8 @@ def _is_value(cell: str) -> bool:
     return bool(cell.strip()) and not _is_text(cell)
 
 
-def _is_number(s: str) -> bool:
+def is_number(s: str) -> bool:
+    """Whether ``s`` is a number as a CSV cell writes it (:data:`_NUMBER`)."""
     return _NUMBER.fullmatch(s.strip()) is not None
 
 
