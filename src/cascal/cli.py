@@ -82,6 +82,7 @@ def check_output(
         if folder:
             raise InputError(f"{option} {path}: expected a folder, not standard output")
         return
+    _check_name_lengths(p, option)
     if folder and p.exists() and not p.is_dir():
         raise InputError(f"{option} {p}: expected a folder, got an existing file")
     if folder and p.is_symlink() and not p.exists():
@@ -133,6 +134,28 @@ def file_label(path: str | Path, what: str = "a file") -> str:
 
     p = Path(path)
     return shown(p.name) if p.is_file() else f"{what} read from a pipe"
+
+
+def _check_name_lengths(p: Path, option: str) -> None:
+    """Refuse a path with a part longer than its file system takes, or longer in all than
+    the system does (a fuzz review: the write failed after the work, with exit 1)."""
+    where = p.absolute().parent
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    try:
+        most, whole = os.pathconf(where, "PC_NAME_MAX"), os.pathconf(where, "PC_PATH_MAX")
+    except (OSError, ValueError, AttributeError):  # (no pathconf: Windows)
+        most, whole = 255, 4096
+    text = str(p)
+    short = text if len(text) <= 60 else f"{text[:40]}...{text[-16:]} ({len(text)} characters)"
+    for part in p.parts:
+        if len(os.fsencode(part)) > most:
+            raise InputError(
+                f"{option} {short}: a name of {len(os.fsencode(part))} bytes in the path, "
+                f"longer than the file system takes ({most})"
+            )
+    if len(os.fsencode(str(p.absolute()))) >= whole:
+        raise InputError(f"{option} {short}: a path longer than the system takes ({whole} bytes)")
 
 
 def check_writable(path: Path, what: str) -> None:

@@ -357,6 +357,18 @@ def test_options_take_numbers_as_csv_cells_write_them_in_one_line(tmp_path, args
     assert not (tmp_path / "m.json").exists()
 
 
+def test_an_output_name_too_long_is_refused_before_the_work(tmp_path):
+    """A fuzz review: a name of 300 bytes failed as the file was written, after the fit,
+    with exit 1; it is refused first, in one line, with the length the file system takes."""
+    stage = tmp_path / "s.csv"
+    stage.write_text(GOOD)
+    res = run_cascal("fit", stage, "-o", tmp_path / ("x" * 300 + ".json"))
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert "characters): a name of 305 bytes in the path, longer than the file system " \
+        "takes (" in res.stderr and "\n" not in res.stderr.strip()  # fmt: skip
+    assert "Model written" not in res.stdout
+
+
 @pytest.mark.parametrize("option", ["--unit=--", "-o=--", "--restarts=--", "--seed=--"])
 def test_an_option_given_as_equals_dashdash_is_refused(tmp_path, option):
     """A fuzzing review's case: ``--unit=--`` reached the command as an empty list

@@ -61,7 +61,8 @@ def exact_decimals(values: np.ndarray, least: int) -> tuple[int, bool]:
     a = a[np.isfinite(a)]
     best = least
     for k in range(least, 18):
-        q = np.rint(a * 10.0**k)
+        with np.errstate(over="ignore"):  # (a reading of 1e308: inf, and the loop ends)
+            q = np.rint(a * 10.0**k)
         top = float(q.max()) if q.size else 0.0
         if top >= 2.0**50:
             break
