@@ -753,3 +753,18 @@ def test_a_lone_surrogate_is_refused_and_other_names_are_kept(saved, tmp_path):
         else:
             with pytest.raises(ModelFileError, match=r"a text holds a lone surrogate"):
                 load_model(path)
+
+
+@pytest.mark.parametrize(
+    ("edit", "words"),
+    [
+        (lambda d: d.update(method="homoscedastic"), "method 'homoscedastic', but stage 1 carries"),
+        (lambda d: d.update(kernel="matern52"), "kernel 'matern52', but the device stage's is"),
+    ],
+)
+def test_labels_that_contradict_the_stages_are_refused(saved, edit, words):
+    """A fuzz review: a bayes model relabelled homoscedastic loaded (plan then planned for
+    another target), and so did a kernel label the stages do not have."""
+    _rewrite(saved, edit)
+    with pytest.raises(ModelFileError, match=re.escape(words)):
+        load_model(saved)

@@ -449,6 +449,23 @@ def _from_dict(doc: dict) -> CalibrationModel:
     tables = [isinstance(m, OffsetTable) for m in models]
     if (method == "lut" and not all(tables)) or (method != "lut" and any(tables)):
         raise ValueError(f"method {method!r} does not match the stage models")
+    for k, m in enumerate(models[1:], start=1):  # (a fuzz review: bayes relabelled
+        # homoscedastic loaded, and plan then planned for another target)
+        dense = isinstance(m, FittedGP) and m.noise is not None and not m.noise.is_diagonal
+        if dense != (method == "bayes"):
+            raise ValueError(
+                f"method {method!r}, but stage {k} "
+                + ("carries" if dense else "does not carry")
+                + " the stage above's covariance as its noise, as bayes does (edited?)"
+            )
+    device = models[-1] if models else None
+    if isinstance(device, FittedGP) and name in _NAMED:  # (the label, a kernel it is not)
+        kinds = {"se": SquaredExp, "matern32": Matern32, "matern52": Matern52}
+        want = kinds.get(name, Periodic)
+        if not isinstance(device.kernel, want):
+            raise ValueError(
+                f"kernel {name!r}, but the device stage's is {type(device.kernel).__name__}"
+            )
     fitted = FittedCascade(method, tuple(models), tuple(used))
     if list(fitted.calibrated_range) != doc["calibrated_range"]:
         raise ValueError("calibrated_range does not match the last stage's readings")
