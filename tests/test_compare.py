@@ -304,14 +304,18 @@ def test_a_limit_is_judged_with_the_change_s_uncertainty():
     assert lut.against(5.5e-3).verdict == "beyond" and lut.against(6.01e-3).verdict == "within"
     with pytest.raises(InputError, match="limit: expected a finite number > 0"):
         c.against(0.0)
+    # (a diff review: u 0 everywhere, no band: a NaN margin had passed any change)
+    exact = compare(r, r, np.zeros(5), r + change, np.zeros(5))
+    assert exact.against(5.5e-3).verdict == "beyond" and exact.against(6.01e-3).verdict == "within"
 
 
 def test_a_limit_s_wrong_verdicts_are_rare():
     """Over 4000 draws of the change of a correlated 60-point comparison: an unchanged
     device is shown beyond even a tiny limit only as often as it leaves the band (about 5
-    %: pointwise at k = 2 it would be far more often), and a change at the limit everywhere
-    is shown within it in under 2.5 % (its estimate must fall k_band u below it at every
-    reading)."""
+    %: pointwise at k = 2 it would be far more often), and a change at a limit of 3 u
+    everywhere is shown within it in under 2.5 % (its estimate must fall k_band u below it
+    at every reading; judged by the change alone, in about a third of the draws, the
+    change's correlation reaching over half the range)."""
     r = np.linspace(0.0, 1.0, 60)
     sd = 1e-4 * (1.0 + r)
     cov = np.exp(-0.5 * ((r[:, None] - r[None, :]) / 0.1) ** 2) * np.outer(sd, sd)
@@ -322,8 +326,14 @@ def test_a_limit_s_wrong_verdicts_are_rare():
     beyond = [dataclasses.replace(c, change=e).against(t).verdict == "beyond" for e in draws]
     band = [dataclasses.replace(c, change=e).changed for e in draws]
     assert np.mean(beyond) <= np.mean(band) < 0.065 and np.mean(beyond) > 0.035
+    wide = np.exp(-0.5 * ((r[:, None] - r[None, :]) / 0.5) ** 2) * np.outer(sd, sd)
+    wide += np.diag(1e-3 * sd**2)
+    c = compare(r, r, sd, r, np.zeros(60), change_cov=wide)
+    t = 3.0 * float(np.max(c.u))
+    draws = np.random.default_rng(2).multivariate_normal(np.zeros(60), wide, size=4000)
     within = [dataclasses.replace(c, change=t + e).against(t).verdict == "within" for e in draws]
-    assert np.mean(within) < 0.025
+    alone = [np.all(np.abs(t + e) <= t) for e in draws]  # (no margin)
+    assert np.mean(within) < 0.025 < 0.2 < np.mean(alone)
 
 
 def test_one_device_file_under_a_recalibrated_test_bed_shares_its_noise():

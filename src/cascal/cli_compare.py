@@ -93,15 +93,16 @@ def _cmd_compare(args: argparse.Namespace) -> int:
             ]
             # (a review: a test bed's recalibration, the device file unchanged, had been
             # called a change of the device; another: a middle stage's, the test bed's)
-            above = ", ".join(
-                "stage 0, the test bed's calibration"
+            named = [  # (a diff review: "stage 0, the test bed's calibration, stage 1, ...")
+                "stage 0 (the test bed's calibration)"
                 if k == 0
-                else f"stage {k}, {new.data[k].name}"
+                else f"stage {k} ({new.data[k].name})"
                 for k in differ
-            )
+            ]
+            above = " and ".join(filter(None, [", ".join(named[:-1]), *named[-1:]]))
             cause = (
                 f"the device's readings are the same in both models, so the stages above it "
-                f"changed ({above}), not the device"
+                f"changed, not the device: {above}"
                 if differ and differ[-1] < len(old.data) - 1
                 else "the device (or its mounting) has changed since the old calibration"
                 if differ

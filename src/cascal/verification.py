@@ -305,7 +305,11 @@ class Comparison:
             return LimitVerdict(
                 float(limit), verdict, float(np.mean(out)), 0.0, float(np.mean(out))
             )
-        margin = self.k_band * self.u
+        # (a review: u 0 everywhere leaves no band, k_band NaN, and a NaN margin had passed
+        # any change: where u is 0 the change is exact)
+        margin = np.where(self.u > 0, self.k_band * self.u, 0.0)
+        if not np.all(np.isfinite(margin)):
+            raise InputError("against: the change's uncertainty has no finite band")
         beyond, not_within = a - margin > limit, a + margin > limit
         verdict = "beyond" if np.any(beyond) else "undecided" if np.any(not_within) else "within"
         return LimitVerdict(

@@ -136,12 +136,11 @@ def fit_model(
     if method != "lut":
         for s in stages:
             _check_size(s)
-    if periodic:  # (no range check, whose message names files in reverse order: a review
-        # found rotary chains fitted in any order)
-        for above, below in itertools.pairwise(stages):
-            if _reversed(above, below):
-                raise InputError(_reverse_order(above, below), file=below.source.file)
-    else:
+    for above, below in itertools.pairwise(stages):  # (reviews: rotary chains, which have
+        # no range check, and linear ones within it were fitted in reverse order)
+        if _reversed(above, below):
+            raise InputError(_reverse_order(above, below), file=below.source.file)
+    if not periodic:
         turn = TURNS.get(unit.strip().lower()) if kernel != "periodic" else None
         for k, s in enumerate(stages):
             upper = all_stages[len(head) + k - 1].x if len(head) + k else None
@@ -390,7 +389,7 @@ def _check_inside(
     """Refuse a stage whose upper readings leave the range of the stage above (its
     ``upper_x``); ``turn``: a full turn in the readings' angle unit, when the kernel is
     not periodic (the message then names the periodic kernel); ``above``: the stage
-    file above, whose column names can show the files given in reverse order."""
+    file above (where it shares the file's name, the message gives the path)."""
     if upper_x is None:
         return
     lo, hi = float(upper_x.min()), float(upper_x.max())
@@ -414,9 +413,7 @@ def _check_inside(
                 f"{out.size} of {stage.y.size} points lie outside, up to {far:.4g} beyond it: "
                 "are the two files' readings of this sensor in different units?"
             )
-        if above is not None and _reversed(above, stage):
-            advice = _reverse_order(above, stage)
-        elif turn is not None:
+        if turn is not None:
             advice += (
                 "; or, for a rotary axis whose readings wrap at the full turn, fit with the "
                 f"periodic kernel (--kernel periodic --period {turn:.15g}, a GP method)"

@@ -63,6 +63,12 @@ FIT_CASES = {
         ["--kernel", "periodic", "--period", "360"],
         ["row 6", "rows 2 and 6 read 0.0012 and 360.0012", "a closure reading", "--exclude"],
     ),
+    "rotary_closure_twice": (  # (a diff review: the advice named one row of two)
+        "enc,ref\n0.0012,0\n90.0009,90\n180.0012,180\n270.0015,270\n360.0012,360\n"
+        "360.0014,360.0001\n",
+        ["--kernel", "periodic", "--period", "360"],
+        ["row 7", "leave the readings a turn past the first out (--exclude", ":6,7)"],
+    ),
     "too_few_positions": ("a,b\n1,1\n1,1.1\n2,2\n", [], ["3 or more distinct positions"]),
     "extra_cell": ("a,b\n1,1\n2,2,7\n3,3\n", [], ["row 3", "extra cells"]),
     "missing_cell": ("a,b\n1,1\n2\n3,3\n", [], ["row 3", "missing cells"]),
@@ -485,6 +491,13 @@ def test_stage_files_in_reverse_order_are_named_as_such(tmp_path):
         "is the second of tb_dev.csv)" in res.stderr  # fmt: skip
     assert not (tmp_path / "m.json").exists()
     assert run_cascal("fit", ref, dev, "-o", tmp_path / "m.json").returncode == 0
+    # (a diff review: where the device file spans the reference's range, the range check
+    # passed, and the files were fitted in reverse order)
+    wide = tmp_path / "tb_dev_wide.csv"
+    d = np.linspace(-0.05, 1.25, 30)
+    wide.write_text("device,testbed\n" + "".join(f"{v!r},{0.1 + 0.7 * v!r}\n" for v in d.tolist()))
+    res = run_cascal("fit", wide, ref, "-o", tmp_path / "w.json")
+    assert res.returncode == 2 and "the stage files look to be in reverse order" in res.stderr
 
 
 def test_rotary_stage_files_in_reverse_order_and_a_file_given_twice_are_refused(tmp_path):

@@ -173,7 +173,7 @@ def test_a_change_of_the_test_bed_alone_is_not_called_a_change_of_the_device(tmp
     assert res.returncode == 0, res.stderr
     assert "beyond that band" in res.stdout
     assert (
-        "the stages above it changed (stage 0, the test bed's calibration), not the device"
+        "the stages above it changed, not the device: stage 0 (the test bed's calibration)\n"
         in res.stdout
     )
     assert "the device (or its mounting) has changed" not in res.stdout
@@ -182,18 +182,24 @@ def test_a_change_of_the_test_bed_alone_is_not_called_a_change_of_the_device(tmp
 def test_a_change_of_a_middle_stage_is_named(tmp_path):
     """A chain review's case: of three stages, only stage 1's file changed (the device file
     the same), and compare blamed the test bed's calibration; it names stage 1 now."""
-    from dataclasses import replace
+    import dataclasses
 
     from cascal.io.modelfile import save_model
     from cascal.workflow import fit_model
     from utils import three_stages
 
     ref, mid, dev = three_stages()
-    bump = replace(mid, y=mid.y + 8e-4 * np.exp(-(((mid.x - 0.6) / 0.05) ** 2)))
+    bump = dataclasses.replace(mid, y=mid.y + 8e-4 * np.exp(-(((mid.x - 0.6) / 0.05) ** 2)))
     old = save_model(tmp_path / "old.json", fit_model([ref, mid, dev], n_restarts=1))
     new = save_model(tmp_path / "new.json", fit_model([ref, bump, dev], n_restarts=1))
     res = run_cascal("compare", old, new)
     assert res.returncode == 0, res.stderr
     assert "beyond that band" in res.stdout
-    want = "so the stages above it changed (stage 1, testbed_device.csv), not the device"
+    want = "so the stages above it changed, not the device: stage 1 (testbed_device.csv)\n"
     assert want in res.stdout
+    both = dataclasses.replace(ref, y=ref.y + 1e-4 * ref.x)
+    new = save_model(tmp_path / "both.json", fit_model([both, bump, dev], n_restarts=1))
+    res = run_cascal("compare", old, new)
+    assert "changed, not the device: stage 0 (the test bed's calibration) and stage 1 (" in (
+        res.stdout
+    )

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..cascade import Stage
 from ..errors import DataWarning, InputError
+from ..text import exclude_spec
 from ..validation import MIN_POINTS, STAGE_MAX, STAGE_MIN_SPAN, aggregate_repeats, unwrap
 
 __all__ = [
@@ -253,13 +254,15 @@ def read_stage(
         span = float(x.max() - x.min())
         lo, hi = int(np.argmin(x)), int(np.argmax(x))
         if period <= span < period * (1 + 1 / 36):  # (a closure: the start read again)
+            past = table.rows[x >= x[lo] + period]  # (all of them: a diff review's closure
+            # position read twice had been named one row at a time)
             raise InputError(
                 f"rows {int(table.rows[lo])} and {int(table.rows[hi])} read "
                 f"{float(x[lo])!r} and {float(x[hi])!r} in column "
                 f"{table.source.columns[0]!r}, a turn apart (--period {period:g}) or a little "
                 "more: a closure reading of the start? A rotary stage's readings lie within "
-                "one turn, and to the periodic kernel the two are one position: leave one "
-                f"out (--exclude {name}:{int(table.rows[hi])})",
+                "one turn, and to the periodic kernel the two are one position: leave the "
+                f"readings a turn past the first out (--exclude {exclude_spec(name, past)})",
                 file=name,
                 row=int(table.rows[hi]),
             )
