@@ -78,6 +78,28 @@ def test_repeat_means_do_not_depend_on_the_rows_order(rng):
     assert unequal > 0
 
 
+def test_a_file_cut_short_in_its_last_number_is_warned_of(tmp_path):
+    """A fuzz review: a file cut within its last number (``0.486`` of
+    ``0.4861985463790``) was read with no word. Ending without a line break, with fewer
+    decimals than every row before (3 or more), it is warned of; a file that ends with one,
+    or whose numbers are written shortest (Python's repr), is not."""
+    rows = [(0.1 * k + 1e-7 * k * k, 0.1 * k) for k in range(1, 9)]
+    body = "".join(f"{a:.13f},{b:.13f}\n" for a, b in rows)
+    cut = _write(tmp_path, "tb,ref\n" + body + "0.9000000000000,0.9", "cut.csv")
+    with pytest.warns(DataWarning, match=r"cut.csv: the file ends without a line break, and the "
+                      r"last row's ref '0.9' has 1 decimal where the rows before have 13 or "
+                      r"more: the file cut short in that number\? \(row 10\)"):  # fmt: skip
+        read_stage(cut)
+    whole = _write(tmp_path, "tb,ref\n" + body + "0.9000000000000,0.9\n", "whole.csv")
+    # (set points written shortest: 0.1, 0.2, 0.30000000000000004, ...; the last, 0.9)
+    short = "".join(f"{b!r},{a!r}\n" for a, b in rows) + "0.9,0.9000081"
+    shortest = _write(tmp_path, "tb,ref\n" + short, "repr.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_stage(whole)
+        read_stage(shortest)
+
+
 def test_columns_by_name_semicolons_bom_crlf_and_blank_lines(tmp_path):
     p = tmp_path / "s.csv"
     p.write_bytes("\ufefftime;ref;tb\r\n0;1.1;1\r\n\r\n1;2.2;2\r\n2;3.1;3\r\n".encode())

@@ -194,6 +194,8 @@ def read_table(
         )
     names = tuple(header[i] for i in idx)
     cols = tuple(np.ascontiguousarray(values[:, i]) for i in idx)
+    if not raw.endswith((b"\n", b"\r")):
+        _check_cut_short(text, delim, idx, names, name)
     if max_abs is not None:
         for column, col in zip(names, cols, strict=True):
             big = np.flatnonzero(np.abs(col) >= max_abs)
@@ -205,6 +207,49 @@ def read_table(
                     column=column,
                 )
     return Table(cols, rows, Source(name, digest, int(rows.size), names, tuple(sorted(skip))))
+
+
+#: Rows before the last whose decimals :func:`_check_cut_short` compares it with.
+_CUT_ROWS = 200
+
+
+def _check_cut_short(
+    text: str, delim: str, idx: Sequence[int], names: Sequence[str], name: str
+) -> None:
+    """Warn (:class:`DataWarning`) where a file that ends without a line break has a last
+    row whose number in a wanted column (``idx``, named ``names``) has fewer decimals than
+    that column's every other number among the :data:`_CUT_ROWS` rows before it, and at
+    least 3 there: the file cut short within that number (a fuzz review: ``0.486`` of
+    ``0.4861985463790`` was read with no word)."""
+    lines = [ln for ln in text.split("\n")[1:] if ln.strip()]
+    if len(lines) < 4:
+        return
+    rows = [next(csv.reader([ln], delimiter=delim)) for ln in lines[-_CUT_ROWS - 1 :]]
+
+    def decimals(cell: str) -> int | None:
+        c = cell.strip()
+        if not is_number(c) or "e" in c.lower() or c.lower().lstrip("+-") in ("nan", "inf"):
+            return None
+        return len(c.partition(".")[2])
+
+    last, before = rows[-1], rows[:-1]
+    for i, column in zip(idx, names, strict=True):
+        here = decimals(last[i]) if i < len(last) else None
+        others = [decimals(r[i]) for r in before if i < len(r)]
+        if here is None or not others or None in others:
+            continue
+        least = min(others)  # type: ignore[type-var]
+        if least >= 3 and here < least:
+            warnings.warn(
+                f"{name}: the file ends without a line break, and the last row's {column} "
+                f"{last[i].strip()!r} has {here} decimal{'' if here == 1 else 's'} where the "
+                "rows before have "
+                f"{least} or more: the file cut short in that number? (row "
+                f"{text.count(chr(10)) + 1})",
+                DataWarning,
+                stacklevel=4,
+            )
+            return
 
 
 def read_stage(
