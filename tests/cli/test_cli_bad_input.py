@@ -500,6 +500,27 @@ def test_stage_files_in_reverse_order_are_named_as_such(tmp_path):
     assert res.returncode == 2 and "the stage files look to be in reverse order" in res.stderr
 
 
+def test_a_stage_file_whose_names_do_not_link_is_warned_of(tmp_path):
+    """A chain review: `fit ref_tb.csv int_dev.csv`, the middle stage left out (headed
+    `device,intermediate` under `testbed,reference`), was fitted with no word."""
+    x = np.linspace(0.0, 1.0, 21)
+    ref = tmp_path / "ref_tb.csv"
+    ref.write_text("testbed,reference\n" + "".join(f"{v!r},{v + 1e-4 * v!r}\n" for v in x.tolist()))
+    dev = tmp_path / "int_dev.csv"
+    d = np.linspace(0.1, 0.9, 30)
+    dev.write_text(
+        "device,intermediate\n" + "".join(f"{v!r},{v + 1e-4 * v!r}\n" for v in d.tolist())
+    )
+    res = run_cascal("fit", ref, dev, "-o", tmp_path / "m.json")
+    assert res.returncode == 0, res.stderr
+    assert "its columns (device, intermediate) share no name with" in res.stderr
+    assert "is a stage missing between them, or is the file of another chain?" in res.stderr
+    good = tmp_path / "tb_dev.csv"
+    good.write_text(dev.read_text().replace("device,intermediate", "device,testbed"))
+    res = run_cascal("fit", ref, good, "-o", tmp_path / "m.json")
+    assert res.returncode == 0 and "share no name" not in res.stderr
+
+
 def test_rotary_stage_files_in_reverse_order_and_a_file_given_twice_are_refused(tmp_path):
     """A chain review's cases: a periodic fit has no range check, so rotary stage files in
     reverse order were fitted (the reference file taken for the device), and a stage file
