@@ -768,3 +768,10 @@ def test_labels_that_contradict_the_stages_are_refused(saved, edit, words):
     _rewrite(saved, edit)
     with pytest.raises(ModelFileError, match=re.escape(words)):
         load_model(saved)
+
+
+def test_a_model_file_saved_as_utf16_is_named_so(saved):
+    """A fuzz review: UTF-16 without a byte-order mark was called "truncated?"."""
+    saved.write_bytes(saved.read_text().encode("utf-16-le"))
+    with pytest.raises(ModelFileError, match=r"UTF-16 text \(NUL bytes\), not the UTF-8 JSON"):
+        load_model(saved)

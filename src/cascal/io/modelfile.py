@@ -266,6 +266,11 @@ def load_model_checksum(path: str | os.PathLike) -> tuple[CalibrationModel, str]
             f"{name}: not a valid model file: not UTF-8 text (cascal writes model files as "
             "UTF-8 JSON)"
         ) from None
+    if "\x00" in text[:64]:  # (a fuzz review: UTF-16 without its mark was "truncated?")
+        raise ModelFileError(
+            f"{name}: not a valid model file: UTF-16 text (NUL bytes), not the UTF-8 JSON "
+            "cascal writes: saved again by an editor?"
+        )
     try:
         return _parse(text, name)
     except RecursionError:
