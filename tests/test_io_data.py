@@ -94,10 +94,17 @@ def test_a_file_cut_short_in_its_last_number_is_warned_of(tmp_path):
     # (set points written shortest: 0.1, 0.2, 0.30000000000000004, ...; the last, 0.9)
     short = "".join(f"{b!r},{a!r}\n" for a, b in rows) + "0.9,0.9000081"
     shortest = _write(tmp_path, "tb,ref\n" + short, "repr.csv")
+    # (a second review: fixed significant digits, 100 after 99.4737, and trailing zeros
+    # dropped, 0.1234 of 0.123400, had been warned of)
+    points = np.linspace(0.0, 100.0, 20)
+    sig = "".join(f"{v:g},{v + 0.1234567:g}\n" for v in points[:-1]) + "99.9,100"
+    fixed = _write(tmp_path, "tb,ref\n" + sig, "fixed.csv")
+    zeros = "".join(f"{a:.6f},{b:.6f}\n" for a, b in rows) + "0.9000001,0.9123"
+    dropped = _write(tmp_path, "tb,ref\n" + zeros, "dropped.csv")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        read_stage(whole)
-        read_stage(shortest)
+        for quiet in (whole, shortest, fixed, dropped):
+            read_stage(quiet)
 
 
 def test_columns_by_name_semicolons_bom_crlf_and_blank_lines(tmp_path):

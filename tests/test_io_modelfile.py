@@ -758,7 +758,7 @@ def test_a_lone_surrogate_is_refused_and_other_names_are_kept(saved, tmp_path):
 @pytest.mark.parametrize(
     ("edit", "words"),
     [
-        (lambda d: d.update(method="homoscedastic"), "method 'homoscedastic', but stage 1 carries"),
+        (lambda d: d.update(method="homoscedastic"), "'homoscedastic', but stage 1 carries corr"),
         (lambda d: d.update(kernel="matern52"), "kernel 'matern52', but the device stage's is"),
     ],
 )
@@ -775,3 +775,20 @@ def test_a_model_file_saved_as_utf16_is_named_so(saved):
     saved.write_bytes(saved.read_text().encode("utf-16-le"))
     with pytest.raises(ModelFileError, match=r"UTF-16 text \(NUL bytes\), not the UTF-8 JSON"):
         load_model(saved)
+
+
+def test_a_known_noise_given_as_a_diagonal_matrix_loads_in_either_method(tmp_path):
+    """A diff review: a homoscedastic model whose device stage's known noise was given as
+    a diagonal (n, n) matrix (a dense noise object) was refused as bayes relabelled."""
+    from cascal import CalibrationModel, Cascade, Stage
+
+    rng = np.random.default_rng(5)
+    x0 = np.sort(rng.uniform(0, 10, 50))
+    x1 = np.sort(rng.uniform(0.5, 9.5, 40))
+    s0 = Stage(x0 + 0.01 * np.sin(x0), x0, None, "tb")
+    s1 = Stage(x1 + 0.003 * np.cos(x1), x1, np.diag(np.full(40, 1e-8)), "dev")
+    for method in ("homoscedastic", "bayes"):
+        cascade = Cascade([s0, s1], method, n_restarts=1)
+        model = CalibrationModel.from_cascade(cascade, cascade.fit())
+        loaded = load_model(save_model(tmp_path / f"{method}.json", model))
+        assert loaded.method == method

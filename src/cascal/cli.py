@@ -578,6 +578,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
     )
 
     t0, done = time.perf_counter(), [0]
+    headers: set = set()  # the pairs of headers warned of
 
     def report(r) -> None:
         finished.append(r)  # first: an interrupt while its lines print keeps it summarised
@@ -616,7 +617,7 @@ def _cmd_fit_devices(args: argparse.Namespace) -> int:
             stage_files = [tb.sources[0].file, r.file]
             report_findings("fit-devices", r.findings, stage_files, tb.unit)
             if r.source is not None:
-                _report_chain("fit-devices", [tb.sources[0], r.source])
+                _report_chain("fit-devices", [tb.sources[0], r.source], headers)
 
     jobs = args.jobs or default_workers()
     try:
@@ -804,32 +805,49 @@ def _fit_kwargs(args: argparse.Namespace) -> dict[str, object]:
     )
 
 
-def _report_chain(command: str, sources: Sequence) -> None:
-    """Warn where two consecutive stage files (their :class:`~cascal.io.data.Source`) share
-    exactly one column name in the same place, as when one of them has its two columns
-    swapped: each file's second column should be the first column's sensor of the file
-    before it."""
+def _report_chain(command: str, sources: Sequence, seen: set | None = None) -> None:
+    """Warn where two consecutive stage files (their :class:`~cascal.io.data.Source`) look
+    wrongly linked by their column names: in reverse order (the range check passed), one
+    file's columns swapped (exactly one name shared, in the same place), or no name shared
+    (a stage left out, or a file of another chain); each file's second column should be
+    the first column's sensor of the file before it. ``seen``: the pairs of headers warned
+    of already (a fleet's devices share theirs: once per fleet, a review found them once
+    per device)."""
     from itertools import pairwise
+
+    from .workflow import reverse_order
 
     for up, low in pairwise(sources):
         (xu, yu), (xl, yl) = up.columns, low.columns
-        if len({c.lower() for c in (xu, yu, xl, yl)}) == 4:  # (a chain review: a stage
-            # left out, or a device of another test bed, fitted with no word)
-            warn(
-                command,
+        key = (xu.lower(), yu.lower(), xl.lower(), yl.lower())
+        if seen is not None and key in seen:
+            continue
+        reverse = reverse_order(up, low)
+        if reverse is not None:  # (a chain review: rotary files, with no range check, and
+            # linear ones within it; names are labels only, so a warning: a review's
+            # logger channels ch1,ch2 above ch2,ch3)
+            text = f"{low.file}: {reverse}"
+        elif len(set(key)) == 4:  # (a chain review: a stage left out, or a device of
+            # another test bed, fitted with no word)
+            text = (
                 f"{low.file}: its columns ({xl}, {yl}) share no name with {up.file}'s ({xu}, "
                 f"{yu}), where its second column should hold the readings of {xu}, the sensor "
                 "calibrated one stage up: is a stage missing between them, or is the file of "
-                "another chain?",
+                "another chain?"
             )
         elif (xl.lower() == xu.lower()) != (yl.lower() == yu.lower()):
-            warn(
-                command,
+            text = (
                 f"{low.file}: its columns ({xl}, {yl}) follow {up.file}'s ({xu}, {yu}), "
                 f"sharing a name in the same place; its second column should hold the "
                 f"readings of {xu}, the sensor calibrated one stage up: are one file's "
-                "columns swapped? (--x-column and --y-column pick them by name)",
+                "columns swapped? (--x-column and --y-column pick them by name)"
             )
+        else:
+            continue
+        if seen is not None:
+            seen.add(key)
+            text += " (said once for every device file headed so)"
+        warn(command, text)
 
 
 def _level(args: argparse.Namespace) -> float:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import itertools
 import multiprocessing
 import os
 import warnings
@@ -53,6 +52,7 @@ __all__ = [
     "fit_model",
     "measured_arc",
     "plan_measurements",
+    "reverse_order",
     "same_readings",
     "screen_stages",
     "shares_upstream",
@@ -136,10 +136,6 @@ def fit_model(
     if method != "lut":
         for s in stages:
             _check_size(s)
-    for above, below in itertools.pairwise(stages):  # (reviews: rotary chains, which have
-        # no range check, and linear ones within it were fitted in reverse order)
-        if _reversed(above, below):
-            raise InputError(_reverse_order(above, below), file=below.source.file)
     if not periodic:
         turn = TURNS.get(unit.strip().lower()) if kernel != "periodic" else None
         for k, s in enumerate(stages):
@@ -413,7 +409,10 @@ def _check_inside(
                 f"{out.size} of {stage.y.size} points lie outside, up to {far:.4g} beyond it: "
                 "are the two files' readings of this sensor in different units?"
             )
-        if turn is not None:
+        reverse = None if above is None else reverse_order(above.source, stage.source)
+        if reverse is not None:
+            advice = reverse
+        elif turn is not None:
             advice += (
                 "; or, for a rotary axis whose readings wrap at the full turn, fit with the "
                 f"periodic kernel (--kernel periodic --period {turn:.15g}, a GP method)"
@@ -430,13 +429,19 @@ def _check_inside(
         )
 
 
-def _reverse_order(above: StageData, stage: StageData) -> str:
-    """The advice where :func:`_reversed` finds two stage files in reverse order."""
+def reverse_order(above: Source, below: Source) -> str | None:
+    """Where the column names link two consecutive stage files' :class:`Source` the wrong
+    way round (the lower one's first column is the upper one's second, its second not the
+    upper one's first), what to do; else None. Names are only labels (a logger's ``ch1,
+    ch2`` above ``ch2, ch3``), so the command line warns of it, and refuses it only where
+    the range check fails too (a review)."""
+    (xa, ya), (xs, ys) = (tuple(c.lower() for c in d.columns) for d in (above, below))
+    if not (xs == ya and ys != xa):
+        return None
     return (
-        f"the stage files look to be in reverse order ({Path(stage.source.file).name}'s "
-        f"first column, {stage.source.columns[0]}, is the second of "
-        f"{Path(above.source.file).name}): give them from the reference down, the file "
-        "with the reference's readings first"
+        f"the stage files look to be in reverse order ({Path(below.file).name}'s first "
+        f"column, {below.columns[0]}, is the second of {Path(above.file).name}): give them "
+        "from the reference down, the file with the reference's readings first"
     )
 
 
@@ -458,13 +463,6 @@ def _check_distinct(stages: Sequence[StageData | Stage]) -> None:
                     "its own file, from the reference down",
                     file=file(later),
                 )
-
-
-def _reversed(above: StageData, stage: StageData) -> bool:
-    """Whether the column names link ``stage`` (the stage below) to ``above`` the wrong
-    way round: its first column is the second of ``above``, its second not the first."""
-    (xa, ya), (xs, ys) = (tuple(c.lower() for c in d.source.columns) for d in (above, stage))
-    return xs == ya and ys != xa
 
 
 #: A rotary device's readings leave part of the turn unmeasured where the largest gap

@@ -155,7 +155,10 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> Path:
         dest = Path(os.path.realpath(dest))
     try:
         dest.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+        # (a review: a name of 242 to 255 bytes made the temporary's too long, after the
+        # work; such a name's temporary is named after its first 100 characters)
+        prefix = f".{dest.name[:100]}." if len(os.fsencode(dest.name)) > 200 else f".{dest.name}."
+        fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=".tmp", dir=dest.parent)
     except OSError as exc:
         raise OSError(exc.errno, f"cannot write {dest}: {exc.strerror}") from None
     os.close(fd)

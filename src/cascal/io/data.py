@@ -217,10 +217,10 @@ def _check_cut_short(
     text: str, delim: str, idx: Sequence[int], names: Sequence[str], name: str
 ) -> None:
     """Warn (:class:`DataWarning`) where a file that ends without a line break has a last
-    row whose number in a wanted column (``idx``, named ``names``) has fewer decimals than
-    that column's every other number among the :data:`_CUT_ROWS` rows before it, and at
-    least 3 there: the file cut short within that number (a fuzz review: ``0.486`` of
-    ``0.4861985463790`` was read with no word)."""
+    row whose number in a wanted column (``idx``, named ``names``) has a decimal point and
+    at most half the decimals of that column's every other number among the
+    :data:`_CUT_ROWS` rows before it, and they at least 3: the file cut short within that
+    number (a fuzz review: ``0.486`` of ``0.4861985463790`` was read with no word)."""
     lines = [ln for ln in text.split("\n")[1:] if ln.strip()]
     if len(lines) < 4:
         return
@@ -239,7 +239,10 @@ def _check_cut_short(
         if here is None or not others or None in others:
             continue
         least = min(others)  # type: ignore[type-var]
-        if least >= 3 and here < least:
+        # at most half the decimals, and a point: numbers written to fixed significant
+        # digits (100 after 99.4737, 1.00001 after 0.999990) or with trailing zeros dropped
+        # (0.1234 of 0.123400) are not cut short (a review found them warned of)
+        if least >= 3 and 2 * here <= least and "." in last[i]:
             warnings.warn(
                 f"{name}: the file ends without a line break, and the last row's {column} "
                 f"{last[i].strip()!r} has {here} decimal{'' if here == 1 else 's'} where the "

@@ -456,12 +456,17 @@ def _from_dict(doc: dict) -> CalibrationModel:
         raise ValueError(f"method {method!r} does not match the stage models")
     for k, m in enumerate(models[1:], start=1):  # (a fuzz review: bayes relabelled
         # homoscedastic loaded, and plan then planned for another target)
-        dense = isinstance(m, FittedGP) and m.noise is not None and not m.noise.is_diagonal
-        if dense != (method == "bayes"):
+        if not isinstance(m, FittedGP):
+            continue
+        if method == "bayes" and m.noise is None:
             raise ValueError(
-                f"method {method!r}, but stage {k} "
-                + ("carries" if dense else "does not carry")
-                + " the stage above's covariance as its noise, as bayes does (edited?)"
+                f"method 'bayes', but stage {k} does not carry the stage above's covariance "
+                "as its noise (edited?)"
+            )
+        if method == "homoscedastic" and _correlated(m.noise, m.x.size):
+            raise ValueError(
+                f"method 'homoscedastic', but stage {k} carries correlated noise, as bayes "
+                "does with the stage above's covariance (edited?)"
             )
     device = models[-1] if models else None
     if isinstance(device, FittedGP) and name in _NAMED:  # (the label, a kernel it is not)
@@ -541,6 +546,15 @@ def _gp_from(m: dict, x: np.ndarray, targets: np.ndarray) -> FittedGP:
     return gp
 
 
+def _correlated(noise: Noise | None, n: int) -> bool:
+    """Whether a known noise has a covariance off its diagonal (a diagonal matrix given as
+    a dense noise has none: a review found such a homoscedastic model refused)."""
+    if noise is None or noise.is_diagonal:
+        return False
+    M = noise.dense(n)
+    return bool(np.any(M[~np.eye(n, dtype=bool)] != 0.0))
+
+
 def _check_targets(k: int, above: FittedGP | None, y: np.ndarray, targets: np.ndarray) -> None:
     """ValueError unless GP stage ``k``'s ``targets`` (n,) are its data's: stage 0's
     readings ``y`` (n,) themselves, a later stage's the posterior mean of the GP ``above``
@@ -566,29 +580,30 @@ def _check_factor(gp: FittedGP) -> None:
     the factorisation's round-off (``n eps |L| |L^T|``, bounded, with room to spare): a
     hyperparameter edited with the checksum recomputed (a review's case: a length scale
     tripled and the noise changed gave corrections 0.25 mm off and every u 0). Checked on
-    the diagonal and along two random directions ``z`` (``L L^T z`` against ``K z``, K
-    built a block of rows at a time), drawn afresh at every load so that no edit can aim
-    past them (a review evaded the first, middle and last columns checked before): O(n^2)
-    time, O(n) memory beyond a block of K and a dense known noise."""
+    the diagonal, the first, middle and last columns, and along two random directions
+    ``z`` (``L L^T z`` against ``K z``, K built a block of rows at a time) drawn afresh at
+    every load, so that no edit can aim past them (a fuzz review rotated a row of L out of
+    sight of the columns): O(n^2) time, O(n) memory beyond a block of K and a dense known
+    noise."""
     n = gp.x.size
+    cols = np.unique([0, n // 2, n - 1])
     diag = gp.kernel.diag(gp.x) + gp.noise_variance + gp.jitter
-    if gp.noise is not None:
-        diag = diag + gp.noise.diagonal(n)
+    D = np.zeros((n, cols.size))
+    D[cols, np.arange(cols.size)] = 1.0
+    Z = np.hstack([D, np.random.default_rng().standard_normal((n, 2))])  # (n, 5)
     L = gp.L
-    Z = np.random.default_rng().standard_normal((n, 2))
     with np.errstate(over="ignore", invalid="ignore"):
-        rows = np.einsum("ij,ij->i", L, L)  # diag(L L^T)
         KZ = np.empty_like(Z)
         step = max(1, _BLOCK_ENTRIES // max(n, 1))
         for s in range(0, n, step):  # K z, a block of rows at a time
             KZ[s : s + step] = gp.kernel(gp.x[s : s + step], gp.x) @ Z
         KZ += (gp.noise_variance + gp.jitter) * Z
         if gp.noise is not None:
+            diag = diag + gp.noise.diagonal(n)
             KZ += (
-                gp.noise.dense(n) @ Z
-                if not gp.noise.is_diagonal
-                else gp.noise.diagonal(n)[:, None] * Z
+                gp.noise.diagonal(n)[:, None] * Z if gp.noise.is_diagonal else gp.noise.dense(n) @ Z
             )
+        rows = np.einsum("ij,ij->i", L, L)  # diag(L L^T)
         got = np.concatenate([rows, (L @ (L.T @ Z)).ravel()])
         want = np.concatenate([diag, KZ.ravel()])
         # |L| |L^T| |z| bounded by Cauchy-Schwarz, sqrt(rows_i) sum_j sqrt(rows_j) |z_j|:
