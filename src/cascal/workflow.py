@@ -679,8 +679,9 @@ def change_covariance(
         S = ups[0].cross_covariance(ya, yb)
         C[:na, na:] += S
         C[na:, :na] += S.T
-    if same_readings(old.data[-1], new.data[-1]) and not all(
-        same_readings(a, b) for a, b in zip(old.data, new.data, strict=True)
+    if same_readings(old.data[-1], new.data[-1]) and not (
+        len(old.data) == len(new.data)
+        and all(same_readings(a, b) for a, b in zip(old.data, new.data, strict=True))
     ):  # (a user review: a recalibrated test bed over the same device file)
         N = _own_noise(old) + np.sqrt(ga.noise_variance * gb.noise_variance) * np.eye(na)
         C[:na, na:] += N
