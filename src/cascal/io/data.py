@@ -221,10 +221,11 @@ def _check_cut_short(
     at most half the decimals of that column's every other number among the
     :data:`_CUT_ROWS` rows before it, and they at least 3: the file cut short within that
     number (a fuzz review: ``0.486`` of ``0.4861985463790`` was read with no word)."""
-    lines = [ln for ln in text.split("\n")[1:] if ln.strip()]
+    # the last lines alone (the first part, the header or all before them, left out)
+    lines = [ln for ln in text.rsplit("\n", _CUT_ROWS + 1)[1:] if ln.strip()]
     if len(lines) < 4:
         return
-    rows = [next(csv.reader([ln], delimiter=delim)) for ln in lines[-_CUT_ROWS - 1 :]]
+    rows = [next(csv.reader([ln], delimiter=delim)) for ln in lines]
 
     def decimals(cell: str) -> int | None:
         c = cell.strip()
