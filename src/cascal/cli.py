@@ -733,8 +733,6 @@ def _check_unit_names(stages: list, unit: str, command: str) -> None:
     """Warn where a stage's column names carry a unit other than ``unit`` (a user review:
     columns named ``encoder_mm`` fitted as metres, --unit left at its default, every
     label 1000 times off)."""
-    import re
-
     pattern = re.compile(r"(?:^|[_\s\[(])(" + "|".join(_NAMED_UNITS) + r")(?:$|[\])\s])", re.I)
 
     def norm(u: str) -> str:  # (µm and um are one unit)

@@ -29,7 +29,12 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     new = load_checked(args.new, o=args.output, plot=args.plot)
     c = compare_models(old, new)
     s, unit = c.summary(), old.unit
-    if all(same_readings(a, b) for a, b in zip(old.data, new.data, strict=True)):
+    differ = [  # the stages whose readings differ (compare refused other numbers of stages)
+        k
+        for k, (a, b) in enumerate(zip(old.data, new.data, strict=True))
+        if not same_readings(a, b)
+    ]
+    if not differ:
         warn(
             "compare",
             "both models were fitted on the same readings: the band below is what two "
@@ -86,11 +91,6 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         z_at = _at(parts, s["max_z_at"])
         print(f"  largest |change| / u {s['max_z']:.3g}, at reading {z_at}; {band}")
         if c.changed:
-            differ = [
-                k
-                for k, (a, b) in enumerate(zip(old.data, new.data, strict=True))
-                if not same_readings(a, b)
-            ]
             # (a review: a test bed's recalibration, the device file unchanged, had been
             # called a change of the device; another: a middle stage's, the test bed's)
             named = [  # (a diff review: "stage 0, the test bed's calibration, stage 1, ...")

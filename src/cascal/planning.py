@@ -90,9 +90,7 @@ class LowerStage:
 def _chain(lower: LowerStage | Sequence[LowerStage]) -> tuple[LowerStage, ...]:
     """``lower`` as a chain of stages from stage 1 down, checked: each a
     :class:`LowerStage`, each one's ``where`` the next one's ``upper``."""
-    chain = (lower,) if isinstance(lower, LowerStage) else lower
-    if not isinstance(chain, tuple | list) or not chain:
-        chain = (lower,)
+    chain = tuple(lower) if isinstance(lower, tuple | list) and lower else (lower,)
     for stage in chain:
         if not isinstance(stage, LowerStage):  # (a README review: a FittedGP given met an
             # AttributeError)
@@ -237,6 +235,15 @@ def _noise(testbed: FittedGP, noise_variance: float | None) -> float:
     return s2
 
 
+def _variance_now(stage: LowerStage) -> tuple[np.ndarray, np.ndarray]:
+    """The stage's kernel between its ``where`` and its readings (m, n), and its posterior
+    variance at ``where`` now (m,)."""
+    g = as_positions(stage.where, "where")
+    Kg = stage.gp.kernel(g, stage.gp.x)
+    W = solve_triangular(stage.gp.L, Kg.T, lower=True, check_finite=False)
+    return Kg, stage.gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
+
+
 class _TestbedTarget:
     """Stage 0's own variance at the target's points ``var`` (q,)."""
 
@@ -262,12 +269,8 @@ class _LowerTarget:
     variance) by rank-one terms: O((n + m) c) per measurement, no refactorisation."""
 
     def __init__(self, lower: LowerStage, S: np.ndarray) -> None:
-        gp = lower.gp
-        g = as_positions(lower.where, "where")
-        self.Kg = gp.kernel(g, gp.x)
-        W = solve_triangular(gp.L, self.Kg.T, lower=True, check_finite=False)
-        self.var = gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
-        self.P = linalg.cho_solve(gp.L, S)
+        self.Kg, self.var = _variance_now(lower)
+        self.P = linalg.cho_solve(lower.gp.L, S)
         self.G = self.Kg @ self.P
 
     def gains(self, S: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -298,15 +301,11 @@ class _ChainTarget:
     measurement, ``c`` candidates."""
 
     def __init__(self, chain: tuple[LowerStage, ...], S: np.ndarray) -> None:
-        last = chain[-1]
-        g = as_positions(last.where, "where")
         self.Ku = [
             a.gp.kernel(as_positions(b.upper, "upper"), a.gp.x)
             for a, b in itertools.pairwise(chain)
         ]
-        self.Kg = last.gp.kernel(g, last.gp.x)
-        W = solve_triangular(last.gp.L, self.Kg.T, lower=True, check_finite=False)
-        self.var = last.gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
+        self.Kg, self.var = _variance_now(chain[-1])
         self.A = [s.gp.L @ s.gp.L.T for s in chain]
         self.L = [s.gp.L for s in chain]
 
@@ -392,11 +391,7 @@ def lower_variance_after(
     (``M M^T = I - Z^T A^-1 Z``), down to the last."""
     chain = _chain(lower)
     pos = as_positions(positions, "positions")
-    last = chain[-1]
-    g = as_positions(last.where, "where")
-    Kg = last.gp.kernel(g, last.gp.x)
-    W = solve_triangular(last.gp.L, Kg.T, lower=True, check_finite=False)
-    var = last.gp.kernel.diag(g) - np.einsum("ij,ij->j", W, W)
+    Kg, var = _variance_now(chain[-1])
     if pos.size == 0:
         return var
     up = as_positions(chain[0].upper, "upper")

@@ -36,6 +36,9 @@ def test_demo_writes_and_points_to_its_results(demo):
     for name in ("testbed_device_recalibrated.csv", "model_recalibrated.json", "change.png"):
         assert (linear / name).stat().st_size > 0, name
     assert "the device (or its mounting) has changed since the old calibration" in res.stdout
+    assert "Within --max-change 0.001 m everywhere, the change's uncertainty counted" in (
+        res.stdout
+    )
     assert f"$ cascal info {linear / 'model_recalibrated.json'}" in res.stdout
     # the device zeroed 100 m away: named by the identity fit, fitted with --mean offset
     assert "testbed_device_zero_offset.csv: the corrections average -100.0" in res.stderr

@@ -564,10 +564,10 @@ def _check_targets(k: int, above: FittedGP | None, y: np.ndarray, targets: np.nd
             raise ValueError(f"stage {k}: its targets are not its readings (edited?)")
         return
     with np.errstate(over="ignore", invalid="ignore"):
-        K = above.kernel(above._turn(y), above.x)
-        scale = np.abs(above.mean(y)) + np.abs(K) @ np.abs(above.alpha)
+        K, prior = above.kernel(above._turn(y), above.x), above.mean(y)  # (as predict's)
+        scale = np.abs(prior) + np.abs(K) @ np.abs(above.alpha)
         slack = 1e3 * above.x.size * np.finfo(float).eps * scale
-        bad = ~(np.abs(above.predict(y) - targets) <= slack + 1e-300)
+        bad = ~(np.abs(prior + K @ above.alpha - targets) <= slack + 1e-300)
     if np.any(bad) or not np.all(np.isfinite(slack)):
         raise ValueError(
             f"stage {k}: its targets are not the stage above's correction of its readings (edited?)"
