@@ -1,0 +1,836 @@
+"""The study's stage fits, compiled: squared-exponential stages of a few hundred readings.
+
+The Monte Carlo study fits 36 000 small GPs. :func:`cascal.fit_gp` spends most of a fit
+in Python around LAPACK calls on 64 x 64 and 100 x 100 matrices; here the same maxima of
+the log marginal likelihood are found in compiled loops (Numba), with every free
+hyperparameter but one maximised out of an inner, cheap problem:
+
+* :func:`fit_profiled` (stage A, the homoscedastic stage B): the variance in closed form,
+  the noise ratio ``g`` by Newton on a one-dimensional row. A pivoted Cholesky factor of
+  the correlation ``R ~ F F^T`` (F (n, k), stopped where every remaining pivot is below
+  ``PIVOT_TOL / n``, as :mod:`cascal.surrogate`) and a tridiagonal reduction of ``F^T F``
+  bordered by ``F^T r`` give ``r^T (R + g I)^-1 r`` and ``log det(R + g I)`` for every
+  ``g`` in O(k); short length scales (k > n / 2) reduce ``R`` bordered by ``r`` (LAPACK
+  ``dsytrd``) instead. The length scale is searched on rows 0.8 apart in log (as the
+  library's table) and each of the best local maxima (at most three, within 3 nats) is
+  refined by Brent's method between its neighbouring rows.
+* :func:`fit_dense` (the bayes stage B, a known noise ``Sigma = G G^T`` plus a learned
+  white noise): for a length scale and a noise variance, ``N = Sigma + sn2 I`` is diagonal
+  in the basis of ``G``'s left singular vectors, so ``B = F^T N^-1 F`` and one reduction
+  of ``B`` bordered by ``F^T N^-1 r`` give every signal variance in O(k). Brent's method
+  maximises over the log noise variance for each length scale and over the log length
+  scale between the rows that bracket each start.
+
+Nothing here allocates in a loop over readings or does I/O; results are log
+hyperparameters and the maximum, which the caller checks against the exact dense
+likelihood (:mod:`cascal.montecarlo`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import llvmlite.binding as llvm
+import numpy as np
+from numba import njit, types
+from numba.extending import get_cython_function_address
+
+from .errors import CascalError
+from .gp import FittedGP, _fit_gp
+from .kernels import SquaredExp
+from .likelihood import search_bounds
+from .noise import Dense
+from .surrogate import _ROWS, _ROWS_SHORT, COARSE, FINE, MARGIN, PIVOT_TOL
+
+__all__ = ["fit_dense", "fit_profiled", "noise_stage", "white_stage"]
+
+#: A maximum this close (log units) to a bound of the search is left to :func:`cascal.fit_gp`
+#: (which widens the noise's lower bound there).
+_EDGE = 1e-6
+#: Largest gap (nats, relative to max(1, |value|)) between the engine's maximum and the
+#: exact likelihood at its hyperparameters; beyond it the fit is left to cascal.fit_gp.
+_AGREE = 1e-7
+
+_LOG2PI = math.log(2.0 * math.pi)
+#: Noise ratios of a row's first scan (log-spaced over the bounds).
+_SCAN = 45
+#: Brent's tolerance (log units): a maximum's value is then within about 1e-9 nats.
+_XTOL = 1e-5
+#: Brackets moved at most this often where a maximum lies at a bracket's edge.
+_MOVES = 20
+
+llvm.add_symbol(
+    "cascal_dsytrd", get_cython_function_address("scipy.linalg.cython_lapack", "dsytrd")
+)
+_V = types.voidptr
+_dsytrd = types.ExternalFunction("cascal_dsytrd", types.void(_V, _V, _V, _V, _V, _V, _V, _V, _V, _V))
+
+
+# ---------------------------------------------------------------- linear algebra
+
+
+@njit(cache=True)
+def _pivoted(x, a, tol, kmax):
+    """Pivoted Cholesky factor of ``R_ij = exp(-a (x_i - x_j)^2)``: rows of ``F^T`` (k, n)
+    and whether it stopped below ``tol`` within ``kmax`` columns."""
+    n = x.size
+    Ft = np.zeros((kmax, n))
+    d = np.ones(n)
+    row = np.empty(n)
+    k = 0
+    while k < kmax:
+        p = 0
+        best = d[0]
+        for i in range(1, n):
+            if d[i] > best:
+                best = d[i]
+                p = i
+        if best <= tol:
+            return Ft[:k], True
+        s = 1.0 / math.sqrt(best)
+        xp = x[p]
+        for i in range(n):
+            t = x[i] - xp
+            row[i] = math.exp(-a * t * t)
+        for j in range(k):
+            f = Ft[j, p]
+            for i in range(n):
+                row[i] -= f * Ft[j, i]
+        for i in range(n):
+            v = row[i] * s
+            Ft[k, i] = v
+            d[i] -= v * v
+        d[p] = 0.0
+        k += 1
+    best = 0.0
+    for i in range(n):
+        best = max(best, d[i])
+    return Ft[:k], best <= tol
+
+
+@njit(cache=True)
+def _householder(A):
+    """Tridiagonal form of the symmetric ``A`` (m, m) by Householder reflections that keep
+    the first coordinate (``A`` is overwritten): diagonal (m,), squared off-diagonal
+    (m - 1,). For the small bordered matrices of low-rank rows."""
+    m = A.shape[0]
+    v = np.empty(m)
+    p = np.empty(m)
+    for j in range(m - 2):
+        nrm2 = 0.0
+        for i in range(j + 2, m):
+            nrm2 += A[i, j] * A[i, j]
+        if nrm2 == 0.0:
+            continue
+        x0 = A[j + 1, j]
+        nrm = math.sqrt(nrm2 + x0 * x0)
+        alpha = -nrm if x0 >= 0 else nrm
+        v[j + 1] = x0 - alpha
+        for i in range(j + 2, m):
+            v[i] = A[i, j]
+        beta = 2.0 / (v[j + 1] * v[j + 1] + nrm2)
+        for i in range(j + 1, m):
+            s = 0.0
+            for c in range(j + 1, m):
+                s += A[i, c] * v[c]
+            p[i] = beta * s
+        kk = 0.0
+        for i in range(j + 1, m):
+            kk += p[i] * v[i]
+        kk *= 0.5 * beta
+        for i in range(j + 1, m):
+            p[i] -= kk * v[i]
+        for i in range(j + 1, m):
+            for c in range(j + 1, m):
+                A[i, c] -= v[i] * p[c] + p[i] * v[c]
+        A[j + 1, j] = alpha
+        A[j, j + 1] = alpha
+    t = np.empty(m)
+    e2 = np.empty(m - 1)
+    for i in range(m):
+        t[i] = A[i, i]
+    for i in range(m - 1):
+        e2[i] = A[i + 1, i] * A[i + 1, i]
+    return t, e2
+
+
+@njit(cache=True)
+def _lapack_tridiagonal(A):
+    """As :func:`_householder` by LAPACK ``dsytrd`` (lower), for large matrices."""
+    m = A.shape[0]
+    uplo = np.array([ord("L")], np.uint8)
+    size = np.array([m], np.int32)
+    lwork = np.array([8 * m], np.int32)
+    info = np.zeros(1, np.int32)
+    t = np.empty(m)
+    e = np.empty(m - 1)
+    tau = np.empty(m - 1)
+    work = np.empty(8 * m)
+    _dsytrd(
+        uplo.ctypes,
+        size.ctypes,
+        A.ctypes,
+        size.ctypes,
+        t.ctypes,
+        e.ctypes,
+        tau.ctypes,
+        work.ctypes,
+        lwork.ctypes,
+        info.ctypes,
+    )
+    return t, e * e
+
+
+# ------------------------------------------------------------ one-dimensional rows
+
+
+@njit(cache=True)
+def _pivots(t, e2, z):
+    """Backward recurrence of the tridiagonal ``T + z I``: the first pivot ``p0``, its
+    first and second derivatives in ``z``, and ``log det`` with its two derivatives."""
+    k = t.size
+    pv = t[k - 1] + z
+    d1 = 1.0
+    d2 = 0.0
+    ld = math.log(pv)
+    l1 = 1.0 / pv
+    l2 = -l1 * l1
+    for i in range(k - 2, -1, -1):
+        p2 = pv * pv
+        n1 = 1.0 + e2[i] * d1 / p2
+        n2 = e2[i] * (d2 / p2 - 2.0 * d1 * d1 / (p2 * pv))
+        pv = t[i] + z - e2[i] / pv
+        d1 = n1
+        d2 = n2
+        ld += math.log(pv)
+        l1 += d1 / pv
+        l2 += d2 / pv - (d1 / pv) ** 2
+    return pv, d1, d2, ld, l1, l2
+
+
+@njit(cache=True)
+def _pivots_value(t, e2, z):
+    """As :func:`_pivots`, values only: ``p0`` and ``log det`` (the logarithm of products
+    of eight pivots, each between about 1e-30 and 1e30)."""
+    k = t.size
+    pv = t[k - 1] + z
+    prod = pv
+    ld = 0.0
+    for i in range(k - 2, -1, -1):
+        pv = t[i] + z - e2[i] / pv
+        prod *= pv
+        if (i & 7) == 0:
+            ld += math.log(prod)
+            prod = 1.0
+    return pv, ld + math.log(prod)
+
+
+@njit(cache=True)
+def _value(kind, t, e2, c0, c1, e, nx, n, u):
+    """A row's value alone (:func:`_profiled_row` or :func:`_dense_row`)."""
+    if kind == 0:
+        g = math.exp(u)
+        p0, ld = _pivots_value(t, e2, g)
+        q = (c0 + c1 / p0) / g**e
+        if not q > 0.0:
+            return -np.inf
+        return -0.5 * n * math.log(q / n) - 0.5 * (ld + nx * u) - 0.5 * n * (1.0 + _LOG2PI)
+    z = math.exp(-u)
+    p0, ld = _pivots_value(t, e2, z)
+    quad = c0 - c1 / p0
+    if not quad > 0.0:
+        return -np.inf
+    return -0.5 * quad - 0.5 * (e + ld + nx * u) - 0.5 * n * _LOG2PI
+
+
+@njit(cache=True)
+def _profiled_row(t, e2, c0, c1, e, nx, n, u):
+    """Profiled log marginal likelihood at log noise ratio ``u`` and its first two
+    derivatives in ``u``, for a row with ``r^T (R + g I)^-1 r = (c0 + c1 / p0) / g^e``
+    and ``log det(R + g I) = log det(T + g I) + nx log g``."""
+    g = math.exp(u)
+    p0, p1, p2, ld, l1, l2 = _pivots(t, e2, g)
+    Y = c0 + c1 / p0
+    Y1 = -c1 * p1 / (p0 * p0)
+    Y2 = -c1 * (p2 / (p0 * p0) - 2.0 * p1 * p1 / (p0 * p0 * p0))
+    ge = g**e
+    q = Y / ge
+    qg = Y1 / ge - e * Y / (ge * g)
+    qgg = Y2 / ge - 2.0 * e * Y1 / (ge * g) + e * (e + 1.0) * Y / (ge * g * g)
+    ldg = l1 + nx / g
+    ldgg = l2 - nx / (g * g)
+    q1 = g * qg
+    q2 = g * qg + g * g * qgg
+    d1 = g * ldg
+    d2 = g * ldg + g * g * ldgg
+    if not q > 0.0:
+        return -np.inf, 0.0, 0.0
+    value = -0.5 * n * math.log(q / n) - 0.5 * (ld + nx * u) - 0.5 * n * (1.0 + _LOG2PI)
+    return value, -0.5 * n * q1 / q - 0.5 * d1, -0.5 * n * (q2 / q - (q1 / q) ** 2) - 0.5 * d2
+
+
+@njit(cache=True)
+def _dense_row(t, e2, rnr, c, ldn, k, n, u):
+    """Log marginal likelihood at log signal variance ``u`` (``z = e^-u``) and its first
+    two derivatives in ``u``, for ``r^T K^-1 r = rnr - c / p0(z)`` and
+    ``log det K = ldn + log det(T + z I) + k u``."""
+    z = math.exp(-u)
+    p0, p1, p2, ld, l1, l2 = _pivots(t, e2, z)
+    quad = rnr - c / p0
+    qz = c * p1 / (p0 * p0)
+    qzz = c * (p2 / (p0 * p0) - 2.0 * p1 * p1 / (p0 * p0 * p0))
+    if not quad > 0.0:
+        return -np.inf, 0.0, 0.0
+    value = -0.5 * quad - 0.5 * (ldn + ld + k * u) - 0.5 * n * _LOG2PI
+    fz = -0.5 * qz - 0.5 * l1
+    fzz = -0.5 * qzz - 0.5 * l2
+    return value, -z * fz - 0.5 * k, z * fz + z * z * fzz
+
+
+@njit(cache=True)
+def _row_max(kind, t, e2, c0, c1, e, nx, n, lo, hi, u0):
+    """Maximum over ``u`` in [lo, hi] of a row (``kind`` 0: :func:`_profiled_row`, 1:
+    :func:`_dense_row` with ``c0, c1, e, nx = rnr, c, ldn, k``): from ``u0`` by Newton in
+    a bracket 2 wide where that converges inside, else from the best of a scan."""
+    if np.isfinite(u0):
+        a = max(lo, u0 - 2.0)
+        b = min(hi, u0 + 2.0)
+        u, ok = _newton(kind, t, e2, c0, c1, e, nx, n, u0, a, b)
+        if ok and (u > a + 1e-7 or a == lo) and (u < b - 1e-7 or b == hi):
+            return _value(kind, t, e2, c0, c1, e, nx, n, u), u
+    best = -np.inf
+    ib = 0
+    h = (hi - lo) / (_SCAN - 1)
+    for i in range(_SCAN):
+        v = _value(kind, t, e2, c0, c1, e, nx, n, lo + i * h)
+        if v > best:
+            best = v
+            ib = i
+    u, ok = _newton(
+        kind, t, e2, c0, c1, e, nx, n, lo + ib * h, lo + max(ib - 1, 0) * h, lo + min(ib + 1, _SCAN - 1) * h
+    )
+    v = _value(kind, t, e2, c0, c1, e, nx, n, u)
+    if v >= best:
+        return v, u
+    return best, lo + ib * h
+
+
+@njit(cache=True)
+def _row(kind, t, e2, c0, c1, e, nx, n, u):
+    if kind == 0:
+        return _profiled_row(t, e2, c0, c1, e, nx, n, u)
+    return _dense_row(t, e2, c0, c1, e, nx, n, u)
+
+
+@njit(cache=True)
+def _newton(kind, t, e2, c0, c1, e, nx, n, u, lo, hi):
+    """Safeguarded Newton for a row's maximum in [lo, hi] (bisection where a step leaves
+    the bracket or the row is not concave); True where the steps converged."""
+    for _ in range(60):
+        _, v1, v2 = _row(kind, t, e2, c0, c1, e, nx, n, u)
+        if v1 > 0.0:
+            lo = u
+        else:
+            hi = u
+        un = u - v1 / v2 if v2 < 0.0 else 0.5 * (lo + hi)
+        if not (lo < un < hi):
+            un = 0.5 * (lo + hi)
+        if abs(un - u) < 1e-10:
+            return un, True
+        u = un
+    return u, False
+
+
+# ------------------------------------------------------------------- Brent's method
+
+
+@njit(cache=True)
+def _brent_start(a, b, x):
+    """State of a maximisation on [a, b] from ``x`` inside (the best point known):
+    (a, b, x, w, v, fx, fw, fv, d, e); the first point to evaluate is state[2]."""
+    return np.array([a, b, x, x, x, -np.inf, -np.inf, -np.inf, 0.0, 0.0])
+
+
+@njit(cache=True)
+def _brent_next(s, u, fu, first):
+    """Take the value ``fu`` at ``u`` into the state ``s``; the next point to evaluate,
+    or NaN when the bracket is within the tolerance."""
+    a, b, x, w, v, fx, fw, fv, d, e = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9]
+    if first:
+        x = w = v = u
+        fx = fw = fv = fu
+    elif fu >= fx:
+        if u >= x:
+            a = x
+        else:
+            b = x
+        v, fv = w, fw
+        w, fw = x, fx
+        x, fx = u, fu
+    else:
+        if u < x:
+            a = u
+        else:
+            b = u
+        if fu >= fw or w == x:
+            v, fv = w, fw
+            w, fw = u, fu
+        elif fu >= fv or v == x or v == w:
+            v, fv = u, fu
+    xm = 0.5 * (a + b)
+    tol1 = _XTOL
+    tol2 = 2.0 * tol1
+    nxt = np.nan
+    if abs(x - xm) > tol2 - 0.5 * (b - a):
+        golden = True
+        if abs(e) > tol1:
+            r = (x - w) * (fx - fv)
+            q = (x - v) * (fx - fw)
+            p = (x - v) * q - (x - w) * r
+            q = 2.0 * (q - r)
+            if q > 0.0:
+                p = -p
+            q = abs(q)
+            if abs(p) < abs(0.5 * q * e) and p > q * (a - x) and p < q * (b - x):
+                e = d
+                d = p / q
+                golden = False
+                if (x + d) - a < tol2 or b - (x + d) < tol2:
+                    d = tol1 if xm >= x else -tol1
+        if golden:
+            e = (a - x) if x >= xm else (b - x)
+            d = 0.3819660112501051 * e
+        nxt = x + d if abs(d) >= tol1 else x + (tol1 if d >= 0.0 else -tol1)
+    s[0], s[1], s[2], s[3], s[4] = a, b, x, w, v
+    s[5], s[6], s[7], s[8], s[9] = fx, fw, fv, d, e
+    return nxt
+
+
+# ------------------------------------------------------------- profiled fits
+
+
+@njit(cache=True)
+def _profile(x, r, ll, lo, hi, u0, dense):
+    """Maximum over the log noise ratio of the profiled likelihood at log length scale
+    ``ll``: (value, log noise ratio, whether R's rank exceeded n / 2)."""
+    n = x.size
+    a = 0.5 * math.exp(-2.0 * ll)
+    if not dense:
+        Ft, ok = _pivoted(x, a, PIVOT_TOL / n, n // 2)
+        if ok:
+            k = Ft.shape[0]
+            B = np.zeros((k + 1, k + 1))
+            B[1:, 1:] = Ft @ Ft.T
+            b = Ft @ r
+            B[0, 1:] = b
+            B[1:, 0] = b
+            t, e2 = _householder(B)
+            v, u = _row_max(0, t[1:], e2[1:], r @ r, -e2[0], 1.0, n - k, n, lo, hi, u0)
+            return v, u, False
+    B = np.zeros((n + 1, n + 1))
+    for i in range(n):
+        B[i + 1, 0] = r[i]
+        B[0, i + 1] = r[i]
+        B[i + 1, i + 1] = 1.0
+        for j in range(i):
+            d = x[i] - x[j]
+            B[i + 1, j + 1] = B[j + 1, i + 1] = math.exp(-a * d * d)
+    t, e2 = _lapack_tridiagonal(B)
+    v, u = _row_max(0, t[1:], e2[1:], 0.0, e2[0], 0.0, 0.0, n, lo, hi, u0)
+    return v, u, True
+
+
+@njit(cache=True)
+def _profiled_variance(x, r, ll, u):
+    """The variance ``r^T (R + g I)^-1 r / n`` that the profile takes at (ll, u), from the
+    same factor as :func:`_profile` (its rank unbounded)."""
+    n = x.size
+    g = math.exp(u)
+    Ft, ok = _pivoted(x, 0.5 * math.exp(-2.0 * ll), PIVOT_TOL / n, n)
+    k = Ft.shape[0]
+    B = np.zeros((k + 1, k + 1))
+    B[1:, 1:] = Ft @ Ft.T
+    b = Ft @ r
+    B[0, 1:] = b
+    B[1:, 0] = b
+    t, e2 = _householder(B)
+    p0, _ = _pivots_value(t[1:], e2[1:], g)
+    return (r @ r - e2[0] / p0) / g / n
+
+
+@njit(cache=True)
+def _profile_rows(x, r, lls, lo, hi, stride):
+    """Rows at log length scales ``lls`` (s,), longest first: values and log noise ratios.
+    Of the rows whose correlation has a rank above n / 2 (each an O(n^3) reduction) only
+    every ``stride``-th is computed, from the longest: -inf at the others."""
+    s = lls.size
+    vals = np.full(s, -np.inf)
+    us = np.full(s, np.nan)
+    n_dense = 0
+    dense = False
+    for i in np.argsort(-lls):
+        if dense:
+            n_dense += 1
+            if (n_dense - 1) % stride:
+                continue
+        vals[i], us[i], dense = _profile(x, r, lls[i], lo, hi, np.nan, dense)
+    return vals, us
+
+
+@njit(cache=True)
+def _refine_profile(x, r, a, b, ll0, llo, lhi, lo, hi, u0):
+    """Brent's method over the log length scale in [a, b] from ``ll0`` (a bracket moved
+    by 0.2 where the maximum is at its edge, within [llo, lhi]): (value, ll, u,
+    evaluations)."""
+    best = (-np.inf, ll0, u0)
+    evals = 0
+    for _ in range(_MOVES):
+        s = _brent_start(a, b, best[1])
+        ll = s[2]
+        first = True
+        while np.isfinite(ll):
+            v, un, _ = _profile(x, r, ll, lo, hi, best[2], False)
+            evals += 1
+            if v > best[0]:
+                best = (v, ll, un)
+            ll = _brent_next(s, ll, v, first)
+            first = False
+        if not _at_bracket_edge(best[1], a, b, llo, lhi):
+            break
+        a, b = max(llo, best[1] - FINE), min(lhi, best[1] + FINE)
+    return best[0], best[1], best[2], evals
+
+
+@njit(cache=True)
+def _at_bracket_edge(x, a, b, lo, hi):
+    """Whether Brent's maximum ``x`` in [a, b] lies at an edge that is not a bound."""
+    return (x < a + 3.0 * _XTOL and a > lo) or (x > b - 3.0 * _XTOL and b < hi)
+
+
+def _grid(lo: float, hi: float) -> np.ndarray:
+    """Rows :data:`~cascal.surrogate.COARSE` apart over [lo, hi] (log length scale)."""
+    return np.linspace(lo, hi, math.ceil((hi - lo) / COARSE) + 1)
+
+
+def _peaks(vals: np.ndarray, k: int) -> list[int]:
+    """Indices of the ``k`` best local maxima of ``vals`` within MARGIN of the best."""
+    s = vals.size
+    idx = [
+        i
+        for i in range(s)
+        if np.isfinite(vals[i])
+        and (i == 0 or vals[i] >= vals[i - 1])
+        and (i == s - 1 or vals[i] >= vals[i + 1])
+    ]
+    idx.sort(key=lambda i: -vals[i])
+    return [i for i in idx[:k] if vals[i] >= vals[idx[0]] - MARGIN]
+
+
+def _fine(lls: np.ndarray, peaks: list[int], lo: float, hi: float) -> np.ndarray:
+    """Rows :data:`~cascal.surrogate.FINE` apart out to each peak's neighbouring rows."""
+    step = lls[1] - lls[0] if lls.size > 1 else 0.0
+    offsets = np.arange(FINE, step - 0.5 * FINE, FINE)
+    fine = np.unique([lls[i] + d * o for i in peaks for d in (-1, 1) for o in offsets])
+    return fine[(fine > lo) & (fine < hi)]
+
+
+@dataclass(frozen=True, slots=True)
+class Profile:
+    """A profiled fit's search: its maxima ``(value, log length_scale, log noise ratio)``,
+    best first, and its table: rows ``lls`` (s,) sorted, ``vals`` (s,) and ``us`` (s,)."""
+
+    maxima: list[tuple[float, float, float]]
+    lls: np.ndarray
+    vals: np.ndarray
+    us: np.ndarray
+
+
+def fit_profiled(
+    x: np.ndarray, r: np.ndarray, bounds: np.ndarray, n_restarts: int = 3
+) -> Profile:
+    """Local maxima of the profiled log marginal likelihood of residuals ``r`` (n,) at
+    readings ``x`` (n,) (squared exponential, learned white noise).
+
+    As :mod:`cascal.surrogate`'s off-grid table: rows 0.8 apart over the bounds (of those
+    of a rank above n / 2, every second), then rows 0.2 apart out to the neighbours of the
+    best local maxima (at most ``n_restarts``, within 3 nats); from each of the combined
+    table's best local maxima, Brent's method between its neighbouring rows; then the two
+    probes of :func:`cascal.fit_gp` (0.2 to either side of the best maximum), refined
+    where higher.
+
+    Args:
+        bounds: Log bounds (2, 2) of the length scale and the noise ratio, as
+            :func:`cascal.likelihood.search_bounds` with ``profile=True``.
+        n_restarts: Local maxima of the table refined, at most.
+    """
+    (llo, lhi), (lo, hi) = (float(v) for v in bounds[0]), (float(v) for v in bounds[1])
+    lls = _grid(llo, lhi)
+    vals, us = _profile_rows(x, r, lls, lo, hi, 2)
+    fine = _fine(lls, _peaks(vals, n_restarts), llo, lhi)
+    if fine.size:
+        fv, fu = _profile_rows(x, r, fine, lo, hi, 1)
+        order = np.argsort(np.concatenate([lls, fine]), kind="stable")
+        lls = np.concatenate([lls, fine])[order]
+        vals = np.concatenate([vals, fv])[order]
+        us = np.concatenate([us, fu])[order]
+    out = []
+    for i in _peaks(vals, n_restarts):
+        a, b = lls[max(i - 1, 0)], lls[min(i + 1, lls.size - 1)]
+        v, ll, u, _ = _refine_profile(x, r, a, b, lls[i], llo, lhi, lo, hi, us[i])
+        out.append((float(v), float(ll), float(u)))
+    out.sort(key=lambda t: -t[0])
+    if out:
+        best, ll0, u0 = out[0]
+        for probe in (ll0 - FINE, ll0 + FINE):
+            if not llo <= probe <= lhi:
+                continue
+            v, u, _ = _profile(x, r, probe, lo, hi, u0, False)
+            if v > best:
+                a, b = max(llo, probe - FINE), min(lhi, probe + FINE)
+                v, ll, u, _ = _refine_profile(x, r, a, b, probe, llo, lhi, lo, hi, u)
+                out.append((float(v), float(ll), float(u)))
+        out.sort(key=lambda t: -t[0])
+    return Profile(out, lls, vals, us)
+
+
+# -------------------------------------------------------- a known dense noise
+
+
+@njit(cache=True)
+def _noise_row(Fh, Fp, rh, rp2, s2, r_proj, sn2, lo, hi, u0, n):
+    """Maximum over the log signal variance at one length scale (through ``Fh = U^T F``
+    (m, k), the complement's ``Fp^T Fp`` (k, k) and ``F^T`` of the complement's residual
+    ``r_proj`` (k,)) and noise variance ``sn2``: (value, log signal variance)."""
+    m, k = Fh.shape
+    w = 1.0 / (s2 + sn2)
+    B = np.zeros((k + 1, k + 1))
+    for i in range(k):
+        for j in range(i + 1):
+            acc = Fp[i, j] / sn2
+            for l in range(m):
+                acc += Fh[l, i] * w[l] * Fh[l, j]
+            B[i + 1, j + 1] = acc
+            B[j + 1, i + 1] = acc
+        acc = r_proj[i] / sn2
+        for l in range(m):
+            acc += Fh[l, i] * w[l] * rh[l]
+        B[i + 1, 0] = acc
+        B[0, i + 1] = acc
+    rnr = rp2 / sn2
+    ldn = (n - m) * math.log(sn2)
+    for l in range(m):
+        rnr += w[l] * rh[l] * rh[l]
+        ldn += math.log(s2[l] + sn2)
+    t, e2 = _householder(B)
+    return _row_max(1, t[1:], e2[1:], rnr, e2[0], ldn, float(k), n, lo, hi, u0)
+
+
+@njit(cache=True)
+def _noise_setup(x, r, U, ll):
+    """At log length scale ``ll``: ``Fh = U^T F`` (m, k), ``Fp = Fperp^T Fperp`` (k, k),
+    ``rh = U^T r`` (m,), ``|rperp|^2`` and ``Fperp^T rperp`` (k,), where ``perp`` is the
+    part outside the span of ``U`` (n, m); ok False where R's rank exceeds n / 2."""
+    n = x.size
+    Ft, ok = _pivoted(x, 0.5 * math.exp(-2.0 * ll), PIVOT_TOL / n, n // 2)
+    F = Ft.T.copy()
+    Fh = U.T @ F
+    Fperp = F - U @ Fh
+    rh = U.T @ r
+    rperp = r - U @ rh
+    return Fh, Fperp.T @ Fperp, rh, rperp @ rperp, Fperp.T @ rperp, ok
+
+
+@njit(cache=True)
+def _noise_rows(x, r, U, s2, lls, ln, vlo, vhi):
+    """At log length scales ``lls`` (s,) and log noise variance ``ln``: the maximum over
+    the log signal variance and where it is, each (s,); -inf where R's rank exceeds n / 2."""
+    s = lls.size
+    vals = np.full(s, -np.inf)
+    uvs = np.full(s, np.nan)
+    n = x.size
+    for i in range(s):
+        Fh, Fp, rh, rp2, r_proj, ok = _noise_setup(x, r, U, lls[i])
+        if ok:
+            vals[i], uvs[i] = _noise_row(Fh, Fp, rh, rp2, s2, r_proj, math.exp(ln), vlo, vhi, np.nan, n)
+    return vals, uvs
+
+
+@njit(cache=True)
+def _dense_profile(x, r, U, s2, ll, vlo, vhi, nlo, nhi, v0, n0):
+    """Maximum over the log noise variance (Brent's method) and log signal variance at
+    log length scale ``ll``: (value, log signal variance, log noise variance)."""
+    n = x.size
+    Fh, Fp, rh, rp2, r_proj, ok = _noise_setup(x, r, U, ll)
+    if not ok:
+        return np.nan, np.nan, np.nan
+    a, b = nlo, nhi
+    if np.isfinite(n0):
+        a = max(nlo, n0 - 1.0)
+        b = min(nhi, n0 + 1.0)
+    best = (-np.inf, v0, n0)
+    for _ in range(2):  # where the maximum is at the bracket's edge, the full bounds
+        x0 = best[2] if np.isfinite(best[2]) else 0.5 * (a + b)
+        s = _brent_start(a, b, min(max(x0, a), b))
+        un = s[2]
+        uv = best[1]
+        first = True
+        while np.isfinite(un):
+            val, uv_new = _noise_row(Fh, Fp, rh, rp2, s2, r_proj, math.exp(un), vlo, vhi, uv, n)
+            if val > best[0]:
+                best = (val, uv_new, un)
+                uv = uv_new
+            un = _brent_next(s, un, val, first)
+            first = False
+        edge = best[2] < a + 1e-3 and a > nlo or best[2] > b - 1e-3 and b < nhi
+        if not edge:
+            break
+        a, b = nlo, nhi
+    return best
+
+
+@njit(cache=True)
+def _refine_dense(x, r, U, s2, a, b, ll0, llo, lhi, vlo, vhi, nlo, nhi, v0, n0):
+    """Brent's method over the log length scale in [a, b] from ``ll0`` (a bracket moved
+    by 0.2 where the maximum is at its edge, within [llo, lhi]): (value, ll, log signal
+    variance, log noise variance), NaN where R's rank exceeded n / 2 there."""
+    best = (-np.inf, ll0, v0, n0)
+    for _ in range(_MOVES):
+        s = _brent_start(a, b, best[1])
+        ll = s[2]
+        first = True
+        while np.isfinite(ll):
+            v, uv, un = _dense_profile(x, r, U, s2, ll, vlo, vhi, nlo, nhi, best[2], best[3])
+            if not np.isfinite(v):
+                return np.nan, ll, np.nan, np.nan
+            if v > best[0]:
+                best = (v, ll, uv, un)
+            ll = _brent_next(s, ll, v, first)
+            first = False
+        if not _at_bracket_edge(best[1], a, b, llo, lhi):
+            break
+        a, b = max(llo, best[1] - FINE), min(lhi, best[1] + FINE)
+    return best
+
+
+def fit_dense(
+    x: np.ndarray,
+    r: np.ndarray,
+    factor: np.ndarray,
+    bounds: np.ndarray,
+    white: Profile,
+    log_noise: float,
+    n_restarts: int = 3,
+) -> list[tuple[float, float, float, float]]:
+    """Local maxima of the log marginal likelihood with a known noise ``factor @
+    factor.T`` (factor (n, m)) plus a learned white noise, best first.
+
+    As :func:`cascal.surrogate.dense_starts` does, the rows are those of the white-noise
+    fit's table (``white``) within 20 nats of its best (4 on the side of shorter length
+    scales: a known noise favours longer ones); at each, the signal variance is maximised
+    with the white noise at that fit's (``log_noise``). From each of the rows' best local
+    maxima (at most ``n_restarts``, within 3 nats), Brent's method between the
+    neighbouring rows over the log length scale, where at each length scale Brent's method
+    maximises over the log noise variance (within 1 of the last best; all its bounds where
+    the maximum lies at that bracket's edge) and Newton over the log signal variance.
+
+    Args:
+        bounds: Log bounds (3, 2) of the length scale, the variance and the noise variance,
+            as :func:`cascal.likelihood.search_bounds` gives them.
+
+    Returns:
+        ``(value, log length_scale, log variance, log noise_variance)`` per maximum; NaN
+        where a length scale's correlation had a rank above n / 2.
+    """
+    U, sv, _ = np.linalg.svd(factor, full_matrices=False)
+    U = np.ascontiguousarray(U)
+    s2 = sv * sv
+    (llo, lhi), (vlo, vhi), (nlo, nhi) = ((float(a), float(b)) for a, b in bounds)
+    prof = white.vals
+    best = int(np.argmax(prof))
+    short = np.flatnonzero(prof[: best + 1] >= prof[best] - _ROWS_SHORT)
+    long = np.flatnonzero(prof[best:] >= prof[best] - _ROWS)
+    lls = white.lls[int(short[0]) : best + int(long[-1]) + 1]
+    lls = lls[(lls >= llo) & (lls <= lhi)]
+    ln = min(max(log_noise, nlo), nhi)
+    vals, uvs = _noise_rows(x, r, U, s2, lls, ln, vlo, vhi)
+    out = []
+    for i in _peaks(vals, n_restarts):
+        a, b = lls[max(i - 1, 0)], lls[min(i + 1, lls.size - 1)]
+        found = _refine_dense(x, r, U, s2, a, b, lls[i], llo, lhi, vlo, vhi, nlo, nhi, uvs[i], ln)
+        out.append(tuple(float(v) for v in found))
+    out.sort(key=lambda t: -t[0] if np.isfinite(t[0]) else np.inf)
+    return out
+
+
+# ------------------------------------------------------------- fitted stages
+
+
+def white_stage(
+    x: np.ndarray, y: np.ndarray, n_restarts: int, names: tuple[str, str]
+) -> tuple[FittedGP, Profile] | None:
+    """The squared-exponential GP of readings ``x`` (n,) mapped to ``y`` (n,) with the
+    identity mean and a learned white noise, as :func:`cascal.fit_gp` fits it (its exact
+    factorisation at the maximum), and the search's :class:`Profile`. None where the
+    maximum lies at a bound of the search, or the compiled likelihood and the exact one
+    disagree there: the caller then fits with fit_gp."""
+    r = y - x
+    bounds = search_bounds(x, r, SquaredExp(), None, True, True)
+    found = fit_profiled(x, r, bounds, n_restarts)
+    if not found.maxima or not np.isfinite(found.maxima[0][0]):
+        return None
+    value, ll, u = found.maxima[0]
+    if _at_edge([ll, u], bounds):
+        return None
+    lv = math.log(_profiled_variance(x, r, ll, u))
+    gp = _exact(x, y, np.array([ll, lv, u + lv]), None, names)
+    return (gp, found) if gp is not None and _agrees(gp, value) else None
+
+
+def noise_stage(
+    x: np.ndarray,
+    y: np.ndarray,
+    factor: np.ndarray,
+    white: tuple[FittedGP, Profile],
+    n_restarts: int,
+    names: tuple[str, str],
+) -> FittedGP | None:
+    """As :func:`white_stage` with a known noise ``factor @ factor.T`` (factor (n, m))
+    beside the learned white noise, searched from ``white`` (:func:`white_stage` of the
+    same readings and targets); None where that is left to fit_gp."""
+    r = y - x
+    noise = Dense.from_factor(factor)
+    bounds = search_bounds(x, r, SquaredExp(), noise, True, False)
+    log_noise = math.log(white[0].noise_variance)
+    found = fit_dense(x, r, factor, bounds, white[1], log_noise, n_restarts)
+    if not found or not np.isfinite(found[0][0]):
+        return None
+    value, *theta = found[0]
+    if _at_edge(theta, bounds):
+        return None
+    gp = _exact(x, y, np.array(theta), noise, names)
+    return gp if gp is not None and _agrees(gp, value) else None
+
+
+def _at_edge(theta, bounds: np.ndarray) -> bool:
+    t = np.asarray(theta, dtype=float)
+    return bool(np.any(t < bounds[:, 0] + _EDGE) or np.any(t > bounds[:, 1] - _EDGE))
+
+
+def _agrees(gp: FittedGP, value: float) -> bool:
+    return abs(gp.log_marginal_likelihood - value) <= _AGREE * max(1.0, abs(value))
+
+
+def _exact(x, y, theta, noise, names) -> FittedGP | None:
+    """The GP at ``theta`` ``[log length_scale, log variance, log noise_variance]``,
+    factorised exactly as :func:`cascal.fit_gp` does; None where it needs jitter."""
+    hyper = {
+        "length_scale": math.exp(theta[0]),
+        "variance": math.exp(theta[1]),
+        "noise_variance": math.exp(theta[2]),
+    }
+    try:
+        gp = _fit_gp(x, y, "se", "identity", noise, True, hyper, 1, 0, None, None, names)
+    except CascalError:
+        return None
+    return None if gp.jitter else gp
