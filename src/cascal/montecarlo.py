@@ -116,8 +116,7 @@ def _run_trial(config: StudyConfig, index: int) -> TrialResult:
         else:
             device, fits[f"{method}/stage1"] = fitter.stage1(method)
         t1 = time.perf_counter()
-        correct = device if isinstance(device, OffsetTable) else partial(chebyshev_mean, device)
-        cost[method] = cost_j(trial, correct=correct, reference=reference)
+        cost[method] = cost_j(trial, correct=fitter.correct(device), reference=reference)
         seconds[method if method == "lut" else f"{method}_stage_b"] = t1 - t
         seconds[f"{method}_cost"] = time.perf_counter() - t1
     return TrialResult(index, cost, trial.redraws, fits, seconds)
@@ -147,20 +146,31 @@ class _Fitter:
     def stage1(self, method: str) -> tuple[FittedGP, dict[str, float]]:
         stage = self.chain.stages[1]
         if self.compiled and self.white is None:  # (bayes: its search starts from it)
-            self.white = self._white(stage.x, self.gp0.predict(stage.y), stage.name) or False
+            self.posterior = self.gp0.posterior_factor(stage.y)  # targets and factor
+            self.white = self._white(stage.x, self.posterior[0], stage.name) or False
         gp = None
         if method == "homoscedastic" and self.white:
             gp = self.white[0]
         elif method == "bayes" and self.white:
             from .studyfit import noise_stage
 
-            targets, factor = self.gp0.posterior_factor(stage.y)
+            targets, factor = self.posterior
             n = self.config.n_restarts
             gp = noise_stage(stage.x, targets, factor, self.white, n, _names(stage.name))
         if gp is None:
             gp = self.chain.with_method(method).fit(first=self.gp0).models[1]
             return gp, _fit_record(gp, True)
         return gp, _fit_record(gp, False)
+
+    def correct(self, device):
+        """The device's correction as a callable readings -> true positions (J's)."""
+        if isinstance(device, OffsetTable):
+            return device
+        if self.compiled:
+            from .studyfit import corrected
+
+            return partial(corrected, device)
+        return partial(chebyshev_mean, device)
 
     def _white(self, x: np.ndarray, y: np.ndarray, name: str):
         if not self.compiled:
