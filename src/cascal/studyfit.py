@@ -40,7 +40,7 @@ from .errors import CascalError
 from .gp import FittedGP, _condition
 from .means import make_mean
 from .kernels import SquaredExp
-from .likelihood import search_bounds
+from .likelihood import RATIO_MAX
 from .noise import Dense
 from .surrogate import _ROWS, _ROWS_SHORT, COARSE, FINE, MARGIN, PIVOT_TOL
 
@@ -57,10 +57,12 @@ _LOG2PI = math.log(2.0 * math.pi)
 #: Noise ratios of a row's first scan (log-spaced over the bounds).
 _SCAN = 45
 #: Brent's tolerance (log units): a maximum's value is then within about 1e-9 nats.
-_XTOL = 1e-5
+_XTOL = 1e-4
 #: Shorter length scales than a row of rank above n / 2 that lies this far (nats) below
 #: the best row are not tabulated, unless the white-noise limit comes that close.
 _DROP = 20.0
+#: Half width (log units) of the noise variance's bracket around the latest best.
+_NOISE_BRACKET = 0.5
 #: Brackets moved at most this often where a maximum lies at a bracket's edge.
 _MOVES = 20
 
@@ -715,8 +717,8 @@ def _dense_profile(x, r, U, s2, ll, vlo, vhi, nlo, nhi, v0, n0):
         return np.nan, np.nan, np.nan
     a, b = nlo, nhi
     if np.isfinite(n0):
-        a = max(nlo, n0 - 1.0)
-        b = min(nhi, n0 + 1.0)
+        a = max(nlo, n0 - _NOISE_BRACKET)
+        b = min(nhi, n0 + _NOISE_BRACKET)
     best = (-np.inf, v0, n0)
     for _ in range(2):  # where the maximum is at the bracket's edge, the full bounds
         x0 = best[2] if np.isfinite(best[2]) else 0.5 * (a + b)
@@ -837,7 +839,7 @@ def white_stage(
     maximum lies at a bound of the search, or the compiled likelihood and the exact one
     disagree there: the caller then fits with fit_gp."""
     r = y - x
-    bounds = search_bounds(x, r, SquaredExp(), None, True, True)
+    bounds = _bounds(x, r, None)
     found = fit_profiled(x, r, bounds, n_restarts)
     if not found.maxima.shape[0] or not np.isfinite(found.maxima[0, 0]):
         return None
@@ -862,7 +864,7 @@ def noise_stage(
     same readings and targets); None where that is left to fit_gp."""
     r = y - x
     noise = Dense.from_factor(factor)
-    bounds = search_bounds(x, r, SquaredExp(), noise, True, False)
+    bounds = _bounds(x, r, noise)
     log_noise = math.log(white[0].noise_variance)
     found = fit_dense(x, r, factor, bounds, white[1], log_noise, n_restarts)
     if not found or not np.isfinite(found[0][0]):
@@ -872,6 +874,39 @@ def noise_stage(
         return None
     gp = _exact(x, y, np.array(theta), noise, names)
     return gp if gp is not None and _agrees(gp, value) else None
+
+
+@njit(cache=True)
+def _span_gap(x):
+    """Range of the readings ``x`` (or 1 where it is 0) and their smallest positive gap
+    (or that range)."""
+    xs = np.sort(x)
+    span = xs[-1] - xs[0]
+    if span == 0.0:
+        span = 1.0
+    gap = np.inf
+    for i in range(1, xs.size):
+        d = xs[i] - xs[i - 1]
+        if 0.0 < d < gap:
+            gap = d
+    return span, gap if np.isfinite(gap) else span
+
+
+def _bounds(x: np.ndarray, r: np.ndarray, known: Dense | None) -> np.ndarray:
+    """:func:`cascal.likelihood.search_bounds` of a squared-exponential stage with a
+    learned noise, profiled where ``known`` is None (the same numbers, fewer calls)."""
+    span, gap = _span_gap(x)
+    n = r.size
+    v = float(np.square(r - r.mean()).sum()) / n or float(np.square(r).sum()) / n
+    if known is not None:
+        v = max(v, float(np.mean(np.diagonal(known.cov))))
+    v = v or 1.0
+    scale = (max(0.5 * gap, 1e-4 * span), 1e2 * span)
+    if known is None:
+        rows = [scale, (1e-10, RATIO_MAX)]
+    else:
+        rows = [scale, (1e-6 * v, 1e4 * v), (1e-10 * v, 10.0 * v)]
+    return np.log(np.asarray(rows, dtype=float))
 
 
 def _at_edge(theta, bounds: np.ndarray) -> bool:
