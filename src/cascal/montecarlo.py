@@ -15,11 +15,11 @@ from itertools import combinations
 
 import numpy as np
 
-from .baselines import OffsetTable
+from .baselines import fit_table
 from .cascade import METHODS, Cascade
 from .errors import CascalError
 from .gp import FittedGP, single_threaded_blas
-from .simulation import cost_j, j_reference, simulate_trial
+from .simulation import Trial, cost_j, j_reference, simulate_trial
 from .tabulate import chebyshev_mean
 
 __all__ = ["StudyConfig", "TrialResult", "run_chunk", "run_trial", "summarize", "trial_rng"]
@@ -101,9 +101,7 @@ def _run_trial(config: StudyConfig, index: int) -> TrialResult:
     seconds = {"simulate": time.perf_counter() - t0}
     cost: dict[str, float] = {}
     fits: dict[str, dict[str, float]] = {}
-    settings = {"kernel": config.kernel, "n_restarts": config.n_restarts, "seed": fit_seed}
-    chain = Cascade([trial.d2, trial.d1], "bayes", **settings)
-    fitter = _Fitter(chain, config)
+    fitter = _Fitter(trial, config, fit_seed)
     if any(m != "lut" for m in config.methods):
         t = time.perf_counter()
         fits["stage0"] = fitter.stage0()
@@ -112,7 +110,7 @@ def _run_trial(config: StudyConfig, index: int) -> TrialResult:
     for method in sorted(config.methods, key=lambda m: m != "homoscedastic"):
         t = time.perf_counter()
         if method == "lut":
-            device = chain.with_method("lut").fit().device
+            device = fitter.tables()
         else:
             device, fits[f"{method}/stage1"] = fitter.stage1(method)
         t1 = time.perf_counter()
@@ -128,26 +126,41 @@ class _Fitter:
     kernels and wherever the compiled fit declines (a maximum at a bound, say); a record's
     ``library_fit`` is 1 there."""
 
-    def __init__(self, chain: Cascade, config: StudyConfig) -> None:
-        self.chain, self.config = chain, config
+    def __init__(self, trial: Trial, config: StudyConfig, seed: int) -> None:
+        self.trial, self.config, self.seed = trial, config, seed
         self.compiled = config.kernel == "se"
+        self._chain: Cascade | None = None
         self.gp0: FittedGP | None = None
         self.white = None  # the compiled white-noise fit of stage B: (gp, its search)
 
+    @property
+    def chain(self) -> Cascade:
+        """The trial's two-stage chain (made where a fit is left to the library)."""
+        if self._chain is None:
+            self._chain = Cascade([self.trial.d2, self.trial.d1], "bayes", **self._settings())
+        return self._chain
+
+    def _settings(self) -> dict:
+        c = self.config
+        return {"kernel": c.kernel, "n_restarts": c.n_restarts, "seed": self.seed}
+
     def stage0(self) -> dict[str, float]:
-        stage = self.chain.stages[0]
-        found = self._white(stage.x, stage.y, stage.name)
+        found = self._white(*self.trial.d2, "testbed")
         if found is None:
+            # (a stage's seed derives from (seed, stage) alone: the one-stage chain fits
+            # stage A exactly as the two-stage one would)
             self.gp0 = Cascade(self.chain.stages[:1], "bayes", **self._settings()).fit().models[0]
         else:
             self.gp0 = found[0]
         return _fit_record(self.gp0, found is None)
 
     def stage1(self, method: str) -> tuple[FittedGP, dict[str, float]]:
-        stage = self.chain.stages[1]
+        x, y = self.trial.d1
         if self.compiled and self.white is None:  # (bayes: its search starts from it)
-            self.posterior = self.gp0.posterior_factor(stage.y)  # targets and factor
-            self.white = self._white(stage.x, self.posterior[0], stage.name) or False
+            from .studyfit import posterior_factor
+
+            self.posterior = posterior_factor(self.gp0, y)  # targets and factor
+            self.white = self._white(x, self.posterior[0], "device") or False
         gp = None
         if method == "homoscedastic" and self.white:
             gp = self.white[0]
@@ -156,15 +169,23 @@ class _Fitter:
 
             targets, factor = self.posterior
             n = self.config.n_restarts
-            gp = noise_stage(stage.x, targets, factor, self.white, n, _names(stage.name))
+            gp = noise_stage(x, targets, factor, self.white, n, _names("device"))
         if gp is None:
             gp = self.chain.with_method(method).fit(first=self.gp0).models[1]
             return gp, _fit_record(gp, True)
         return gp, _fit_record(gp, False)
 
+    def tables(self):
+        """The lookup-table method's correction, readings -> true positions: the tables
+        of :meth:`Cascade.fit` (:func:`~cascal.baselines.fit_table`'s knots and offsets),
+        without its checks where the readings do not repeat."""
+        first = _table(*self.trial.d2, "testbed")
+        x, y = self.trial.d1
+        return _table(x, first(y), "device")
+
     def correct(self, device):
         """The device's correction as a callable readings -> true positions (J's)."""
-        if isinstance(device, OffsetTable):
+        if not isinstance(device, FittedGP):
             return device
         if self.compiled:
             from .studyfit import corrected
@@ -179,12 +200,16 @@ class _Fitter:
 
         return white_stage(x, y, self.config.n_restarts, _names(name))
 
-    def _settings(self) -> dict:
-        return {
-            "kernel": self.config.kernel,
-            "n_restarts": self.config.n_restarts,
-            "seed": self.chain.seed,
-        }
+
+
+def _table(x: np.ndarray, y: np.ndarray, stage: str):
+    """Readings -> ``reading + offset`` interpolated as :class:`OffsetTable` does."""
+    order = np.argsort(x, kind="stable")
+    knots = x[order]
+    if not (knots[1:] > knots[:-1]).all():  # repeated readings: fit_table averages them
+        return fit_table(x, y, _names(stage))
+    offsets = (y - x)[order]
+    return lambda r: r + np.interp(r, knots, offsets)
 
 
 def _names(stage: str) -> tuple[str, str]:

@@ -37,14 +37,21 @@ from numba import njit, types
 from numba.extending import get_cython_function_address
 
 from .errors import CascalError
-from .gp import FittedGP, _condition
+from .gp import FittedGP
 from .means import make_mean
 from .kernels import SquaredExp
 from .likelihood import RATIO_MAX
 from .noise import Dense
 from .surrogate import _ROWS, _ROWS_SHORT, COARSE, FINE, MARGIN, PIVOT_TOL
 
-__all__ = ["corrected", "fit_dense", "fit_profiled", "noise_stage", "white_stage"]
+__all__ = [
+    "corrected",
+    "fit_dense",
+    "fit_profiled",
+    "noise_stage",
+    "posterior_factor",
+    "white_stage",
+]
 
 #: A maximum this close (log units) to a bound of the search is left to :func:`cascal.fit_gp`
 #: (which widens the noise's lower bound there).
@@ -919,15 +926,145 @@ def _agrees(gp: FittedGP, value: float) -> bool:
 
 
 def _exact(x, y, theta, noise, names) -> FittedGP | None:
-    """The GP at ``theta`` ``[log length_scale, log variance, log noise_variance]``,
-    factorised as :func:`cascal.fit_gp` does with given hyperparameters; None where that
-    needs jitter."""
+    """The GP at ``theta`` ``[log length_scale, log variance, log noise_variance]``: the
+    target covariance factorised (LAPACK ``dpotrf`` through NumPy, in compiled code) as
+    :func:`cascal.fit_gp` does with given hyperparameters; None where that needs jitter."""
     ls, variance, sn2 = (math.exp(float(v)) for v in theta)
-    try:
-        gp = _condition(x, y, SquaredExp(ls, variance), make_mean("identity", y, x), noise, sn2, None)
-    except CascalError:
+    cov = noise.cov if noise is not None else np.zeros((0, 0))
+    L, alpha, lml, ok = _factorise(x, y - x, 0.5 / (ls * ls), variance, sn2, cov)
+    if not ok:
         return None
-    return None if gp.jitter else gp
+    kernel = SquaredExp(ls, variance)
+    return FittedGP(x, y, kernel, make_mean("identity", y, x), noise, sn2, L, alpha, 0.0, lml)
+
+
+@njit(cache=True)
+def _factorise(x, r, a, sf2, sn2, cov):
+    """Cholesky factor (n, n) of ``sf2 R + cov + sn2 I`` (``cov`` (n, n) or empty), the
+    weights (n,) and the log marginal likelihood of residuals ``r``; ok False where the
+    factorisation fails."""
+    n = x.size
+    K = np.empty((n, n))
+    for i in range(n):
+        K[i, i] = sf2 + sn2
+        for j in range(i):
+            d = x[i] - x[j]
+            K[i, j] = K[j, i] = sf2 * math.exp(-a * d * d)
+    if cov.shape[0]:
+        K += cov
+    for i in range(n):
+        if not K[i, i] > 0.0:
+            return K, r, -np.inf, False
+    L = np.linalg.cholesky(K)
+    for i in range(n):
+        if not L[i, i] > 0.0:
+            return L, r, -np.inf, False
+    alpha = _cho_solve(L, r)
+    lml = -0.5 * (r @ alpha) - 0.5 * n * _LOG2PI
+    for i in range(n):
+        lml -= math.log(L[i, i])
+    return L, alpha, lml, True
+
+
+@njit(cache=True)
+def _cho_solve(L, b):
+    """``(L L^T)^-1 b`` for a lower triangular ``L`` (n, n)."""
+    n = b.size
+    y = np.empty(n)
+    for i in range(n):
+        acc = b[i]
+        for j in range(i):
+            acc -= L[i, j] * y[j]
+        y[i] = acc / L[i, i]
+    for i in range(n - 1, -1, -1):
+        acc = y[i]
+        for j in range(i + 1, n):
+            acc -= L[j, i] * y[j]
+        y[i] = acc / L[i, i]
+    return y
+
+
+def posterior_factor(gp: FittedGP, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`FittedGP.posterior_factor` of a squared-exponential, identity-mean stage at
+    readings ``x`` (m,), compiled: mean (m,) and a factor ``U`` (m, k) of the posterior
+    covariance, pivoted Cholesky stopped where every remaining pivot is below eps times the
+    prior variance."""
+    k = gp.kernel
+    return _posterior(
+        gp.x, gp.L, gp.alpha, 0.5 / (k.length_scale * k.length_scale), k.variance, x
+    )
+
+
+@njit(cache=True)
+def _posterior(xt, L, alpha, a, sf2, xs):
+    n = xt.size
+    m = xs.size
+    V = np.empty((n, m))  # L^-1 k(X, xs), row by row
+    mean = xs.copy()
+    for i in range(n):
+        for c in range(m):
+            d = xs[c] - xt[i]
+            V[i, c] = sf2 * math.exp(-a * d * d)
+        for c in range(m):
+            mean[c] += V[i, c] * alpha[i]
+    for i in range(n):
+        for j in range(i):
+            f = L[i, j]
+            for c in range(m):
+                V[i, c] -= f * V[j, c]
+        inv = 1.0 / L[i, i]
+        for c in range(m):
+            V[i, c] *= inv
+    C = V.T @ V
+    for i in range(m):
+        C[i, i] = sf2 - C[i, i]
+        for j in range(i):
+            d = xs[i] - xs[j]
+            v = sf2 * math.exp(-a * d * d) - 0.5 * (C[i, j] + C[j, i])
+            C[i, j] = v
+            C[j, i] = v
+    return mean, _pivoted_matrix(C, np.finfo(np.float64).eps * sf2)
+
+
+@njit(cache=True)
+def _pivoted_matrix(C, tol):
+    """Pivoted Cholesky factor (m, k) of the symmetric positive semi-definite ``C`` (m, m),
+    rows in input order, stopped where every remaining pivot is below ``tol``."""
+    m = C.shape[0]
+    Ft = np.zeros((m, m))
+    d = np.empty(m)
+    for i in range(m):
+        d[i] = C[i, i]
+    done = np.zeros(m, np.bool_)
+    k = 0
+    while k < m:
+        p = -1
+        best = tol
+        for i in range(m):
+            if not done[i] and d[i] > best:
+                best = d[i]
+                p = i
+        if p < 0:
+            break
+        s = 1.0 / math.sqrt(best)
+        row = Ft[k]
+        for i in range(m):
+            row[i] = C[i, p]
+        for j in range(k):
+            f = Ft[j, p]
+            for i in range(m):
+                row[i] -= f * Ft[j, i]
+        for i in range(m):
+            row[i] *= s
+        for i in range(m):
+            if done[i]:
+                row[i] = 0.0
+            else:
+                d[i] -= row[i] * row[i]
+        row[p] = best * s
+        done[p] = True
+        k += 1
+    return Ft[:k].T.copy()
 
 
 # --------------------------------------------------------------- the cost J
@@ -971,6 +1108,24 @@ def _kernel_dot(xs, xt, alpha, a, sf2, absolute):
 
 
 @njit(cache=True)
+def _clenshaw(t, coef):
+    """``sum_k coef[k] T_k(t)`` at every ``t`` (m,), the points innermost (vectorised)."""
+    m = t.size
+    b1 = np.zeros(m)
+    b2 = np.zeros(m)
+    for kk in range(coef.size - 1, 0, -1):
+        c = coef[kk]
+        for i in range(m):
+            b0 = c + 2.0 * t[i] * b1[i] - b2[i]
+            b2[i] = b1[i]
+            b1[i] = b0
+    out = np.empty(m)
+    for i in range(m):
+        out[i] = coef[0] + t[i] * b1[i] - b2[i]
+    return out
+
+
+@njit(cache=True)
 def _chebyshev(xs, xt, alpha, a, sf2, rtol):
     m = xs.size
     if m < 4 * 32:
@@ -996,16 +1151,7 @@ def _chebyshev(xs, xt, alpha, a, sf2, rtol):
         coef[0] *= 0.5
         if np.abs(coef[n - n // 4 :]).max() > tol / 16.0:
             continue
-        corr = np.empty(m)
-        for i in range(m):
-            t = (xs[i] - mid) / half
-            b1 = 0.0
-            b2 = 0.0
-            for kk in range(n - 1, 0, -1):
-                b0 = coef[kk] + 2.0 * t * b1 - b2
-                b2 = b1
-                b1 = b0
-            corr[i] = coef[0] + t * b1 - b2
+        corr = _clenshaw((xs - mid) / half, coef)
         if np.abs(corr[check] - exact).max() <= tol:
             return xs + corr
     return None
