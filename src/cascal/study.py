@@ -152,6 +152,8 @@ def _run_study(
         size = chunk or max(1, min(50, len(pending) // (8 * n_workers) or 1))
         chunks = [pending[i : i + size] for i in range(0, len(pending), size)]
         done = trials - len(pending)
+        if len(pending) >= _PRELOAD:  # the outputs' imports while the workers compute
+            threading.Thread(target=_preload, name="preload", daemon=True).start()
         if progress:
             progress(done, trials)
         try:
@@ -178,6 +180,18 @@ def _run_study(
             client.close()
     span = max((r.index for r in stored), default=-1) + 1
     return StudyOutcome(folder, results, summary, len(pending), len(stored), span)
+
+
+#: Pending trials from which the outputs' modules are imported during the run.
+_PRELOAD = 500
+
+
+def _preload() -> None:
+    """Import what the outputs need (SciPy's statistics, matplotlib: about 1 s)."""
+    with contextlib.suppress(Exception):
+        import scipy.stats  # noqa: F401
+
+        from . import plots  # noqa: F401
 
 
 def _write_outputs(folder: Path, results: list[TrialResult], config: StudyConfig) -> dict:
