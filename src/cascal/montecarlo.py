@@ -145,7 +145,7 @@ class _Fitter:
         return {"kernel": c.kernel, "n_restarts": c.n_restarts, "seed": self.seed}
 
     def stage0(self) -> dict[str, float]:
-        found = self._white(*self.trial.d2, "testbed")
+        found = self._white(*self.trial.d2)
         if found is None:
             # (a stage's seed derives from (seed, stage) alone: the one-stage chain fits
             # stage A exactly as the two-stage one would)
@@ -160,7 +160,7 @@ class _Fitter:
             from .studyfit import posterior_factor
 
             self.posterior = posterior_factor(self.gp0, y)  # targets and factor
-            self.white = self._white(x, self.posterior[0], "device") or False
+            self.white = self._white(x, self.posterior[0]) or False
         gp = None
         if method == "homoscedastic" and self.white:
             gp = self.white[0]
@@ -169,7 +169,7 @@ class _Fitter:
 
             targets, factor = self.posterior
             n = self.config.n_restarts
-            gp = noise_stage(x, targets, factor, self.white, n, _names("device"))
+            gp = noise_stage(x, targets, factor, self.white, n)
         if gp is None:
             gp = self.chain.with_method(method).fit(first=self.gp0).models[1]
             return gp, _fit_record(gp, True)
@@ -193,13 +193,12 @@ class _Fitter:
             return partial(corrected, device)
         return partial(chebyshev_mean, device)
 
-    def _white(self, x: np.ndarray, y: np.ndarray, name: str):
+    def _white(self, x: np.ndarray, y: np.ndarray):
         if not self.compiled:
             return None
         from .studyfit import white_stage  # (Numba loads with it: only where the study runs)
 
-        return white_stage(x, y, self.config.n_restarts, _names(name))
-
+        return white_stage(x, y, self.config.n_restarts)
 
 
 def _table(x: np.ndarray, y: np.ndarray, stage: str):

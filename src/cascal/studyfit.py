@@ -36,11 +36,10 @@ import numpy as np
 from numba import njit, types
 from numba.extending import get_cython_function_address
 
-from .errors import CascalError
 from .gp import FittedGP
-from .means import make_mean
 from .kernels import SquaredExp
 from .likelihood import RATIO_MAX
+from .means import make_mean
 from .noise import Dense
 from .surrogate import _ROWS, _ROWS_SHORT, COARSE, FINE, MARGIN, PIVOT_TOL
 
@@ -79,7 +78,9 @@ llvm.add_symbol(
     "cascal_dsytrd", get_cython_function_address("scipy.linalg.cython_lapack", "dsytrd")
 )
 _V = types.voidptr
-_dsytrd = types.ExternalFunction("cascal_dsytrd", types.void(_V, _V, _V, _V, _V, _V, _V, _V, _V, _V))
+_dsytrd = types.ExternalFunction(
+    "cascal_dsytrd", types.void(_V, _V, _V, _V, _V, _V, _V, _V, _V, _V)
+)
 
 
 # ---------------------------------------------------------------- linear algebra
@@ -323,7 +324,17 @@ def _row_max(kind, t, e2, c0, c1, e, nx, n, lo, hi, u0):
             best = v
             ib = i
     u, ok = _newton(
-        kind, t, e2, c0, c1, e, nx, n, lo + ib * h, lo + max(ib - 1, 0) * h, lo + min(ib + 1, _SCAN - 1) * h
+        kind,
+        t,
+        e2,
+        c0,
+        c1,
+        e,
+        nx,
+        n,
+        lo + ib * h,
+        lo + max(ib - 1, 0) * h,
+        lo + min(ib + 1, _SCAN - 1) * h,
     )
     v = _value(kind, t, e2, c0, c1, e, nx, n, u)
     if v >= best:
@@ -426,9 +437,10 @@ def _brent_next(s, u, fu, first):
 
 
 @njit(cache=True)
-def _profile(x, r, ll, lo, hi, u0, dense):
-    """Maximum over the log noise ratio of the profiled likelihood at log length scale
-    ``ll``: (value, log noise ratio, R's rank: n where it exceeded n / 2)."""
+def _profile_form(x, r, ll, dense):
+    """The row of the profiled likelihood at log length scale ``ll`` as :func:`_value`
+    and :func:`_row` take it (kind 0): ``(t, e2, c0, c1, e, nx)``, and R's rank (n where
+    it exceeds n / 2, or ``dense``: then from the reduction of R bordered by r)."""
     n = x.size
     a = 0.5 * math.exp(-2.0 * ll)
     if not dense:
@@ -441,8 +453,7 @@ def _profile(x, r, ll, lo, hi, u0, dense):
             B[0, 1:] = b
             B[1:, 0] = b
             t, e2 = _householder(B)
-            v, u = _row_max(0, t[1:], e2[1:], r @ r, -e2[0], 1.0, n - k, n, lo, hi, u0)
-            return v, u, k
+            return t[1:], e2[1:], r @ r, -e2[0], 1.0, float(n - k), k
     B = np.zeros((n + 1, n + 1))
     for i in range(n):
         B[i + 1, 0] = r[i]
@@ -452,8 +463,16 @@ def _profile(x, r, ll, lo, hi, u0, dense):
             d = x[i] - x[j]
             B[i + 1, j + 1] = B[j + 1, i + 1] = math.exp(-a * d * d)
     t, e2 = _lapack_tridiagonal(B)
-    v, u = _row_max(0, t[1:], e2[1:], 0.0, e2[0], 0.0, 0.0, n, lo, hi, u0)
-    return v, u, n
+    return t[1:], e2[1:], 0.0, e2[0], 0.0, 0.0, n
+
+
+@njit(cache=True)
+def _profile(x, r, ll, lo, hi, u0, dense):
+    """Maximum over the log noise ratio of the profiled likelihood at log length scale
+    ``ll``: (value, log noise ratio, R's rank: n where it exceeded n / 2)."""
+    t, e2, c0, c1, e, nx, k = _profile_form(x, r, ll, dense)
+    v, u = _row_max(0, t, e2, c0, c1, e, nx, x.size, lo, hi, u0)
+    return v, u, k
 
 
 @njit(cache=True)
@@ -462,7 +481,7 @@ def _profiled_variance(x, r, ll, u):
     same factor as :func:`_profile` (its rank unbounded)."""
     n = x.size
     g = math.exp(u)
-    Ft, ok = _pivoted(x, 0.5 * math.exp(-2.0 * ll), PIVOT_TOL / n, n)
+    Ft, _ = _pivoted(x, 0.5 * math.exp(-2.0 * ll), PIVOT_TOL / n, n)
     k = Ft.shape[0]
     B = np.zeros((k + 1, k + 1))
     B[1:, 1:] = Ft @ Ft.T
@@ -541,7 +560,7 @@ def _at_bracket_edge(x, a, b, lo, hi):
 @njit(cache=True)
 def _grid(lo, hi):
     """Rows :data:`~cascal.surrogate.COARSE` apart over [lo, hi] (log length scale)."""
-    return np.linspace(lo, hi, int(math.ceil((hi - lo) / COARSE)) + 1)
+    return np.linspace(lo, hi, int(np.ceil((hi - lo) / COARSE)) + 1)
 
 
 @njit(cache=True)
@@ -617,9 +636,7 @@ class Profile:
     us: np.ndarray
 
 
-def fit_profiled(
-    x: np.ndarray, r: np.ndarray, bounds: np.ndarray, n_restarts: int = 3
-) -> Profile:
+def fit_profiled(x: np.ndarray, r: np.ndarray, bounds: np.ndarray, n_restarts: int = 3) -> Profile:
     """Local maxima of the profiled log marginal likelihood of residuals ``r`` (n,) at
     readings ``x`` (n,) (squared exponential, learned white noise).
 
@@ -643,10 +660,11 @@ def fit_profiled(
 
 
 @njit(cache=True)
-def _noise_row(Fh, Fp, rh, rp2, s2, r_proj, sn2, lo, hi, u0, n):
-    """Maximum over the log signal variance at one length scale (through ``Fh = U^T F``
-    (m, k), the complement's ``Fp^T Fp`` (k, k) and ``F^T`` of the complement's residual
-    ``r_proj`` (k,)) and noise variance ``sn2``: (value, log signal variance)."""
+def _noise_form(Fh, Fp, rh, rp2, s2, r_proj, sn2, n):
+    """The row over the log signal variance at one length scale and noise variance
+    ``sn2`` as :func:`_value` and :func:`_row` take it (kind 1): ``(t, e2, rnr, c, ldn,
+    k)``, from ``Fh = U^T F`` (m, k), the complement's ``Fp = Fperp^T Fperp`` (k, k),
+    ``rh = U^T r`` (m,), ``|rperp|^2`` and ``Fperp^T rperp`` (k,) (:func:`_noise_setup`)."""
     m, k = Fh.shape
     w = 1.0 / (s2 + sn2)
     B = np.zeros((k + 1, k + 1))
@@ -668,7 +686,15 @@ def _noise_row(Fh, Fp, rh, rp2, s2, r_proj, sn2, lo, hi, u0, n):
         rnr += w[l] * rh[l] * rh[l]
         ldn += math.log(s2[l] + sn2)
     t, e2 = _householder(B)
-    return _row_max(1, t[1:], e2[1:], rnr, e2[0], ldn, float(k), n, lo, hi, u0)
+    return t[1:], e2[1:], rnr, e2[0], ldn, float(k)
+
+
+@njit(cache=True)
+def _noise_row(Fh, Fp, rh, rp2, s2, r_proj, sn2, lo, hi, u0, n):
+    """Maximum over the log signal variance in [lo, hi] of :func:`_noise_form`'s row:
+    (value, log signal variance)."""
+    t, e2, rnr, c, ldn, k = _noise_form(Fh, Fp, rh, rp2, s2, r_proj, sn2, n)
+    return _row_max(1, t, e2, rnr, c, ldn, k, n, lo, hi, u0)
 
 
 @njit(cache=True)
@@ -697,7 +723,9 @@ def _noise_rows(x, r, U, s2, lls, ln, vlo, vhi):
     for i in range(s):
         Fh, Fp, rh, rp2, r_proj, ok = _noise_setup(x, r, U, lls[i])
         if ok:
-            vals[i], uvs[i] = _noise_row(Fh, Fp, rh, rp2, s2, r_proj, math.exp(ln), vlo, vhi, np.nan, n)
+            vals[i], uvs[i] = _noise_row(
+                Fh, Fp, rh, rp2, s2, r_proj, math.exp(ln), vlo, vhi, np.nan, n
+            )
     return vals, uvs
 
 
@@ -727,7 +755,7 @@ def _dense_profile(x, r, U, s2, ll, vlo, vhi, nlo, nhi, v0, n0):
                 uv = uv_new
             un = _brent_next(s, un, val, first)
             first = False
-        edge = best[2] < a + 1e-3 and a > nlo or best[2] > b - 1e-3 and b < nhi
+        edge = (best[2] < a + 1e-3 and a > nlo) or (best[2] > b - 1e-3 and b < nhi)
         if not edge:
             break
         a, b = nlo, nhi
@@ -818,7 +846,9 @@ def _search_dense(x, r, U, s2, wlls, wvals, log_noise, b, n_restarts):
     out = np.empty((peaks.size, 4))
     for m, i in enumerate(peaks):
         a, c = lls[max(i - 1, 0)], lls[min(i + 1, lls.size - 1)]
-        v, ll, uv, un = _refine_dense(x, r, U, s2, a, c, lls[i], llo, lhi, vlo, vhi, nlo, nhi, uvs[i], ln)
+        v, ll, uv, un = _refine_dense(
+            x, r, U, s2, a, c, lls[i], llo, lhi, vlo, vhi, nlo, nhi, uvs[i], ln
+        )
         out[m, 0], out[m, 1], out[m, 2], out[m, 3] = v, ll, uv, un
     key = np.where(np.isfinite(out[:, 0]), -out[:, 0], np.inf)
     return out[np.argsort(key, kind="mergesort")]
@@ -827,9 +857,7 @@ def _search_dense(x, r, U, s2, wlls, wvals, log_noise, b, n_restarts):
 # ------------------------------------------------------------- fitted stages
 
 
-def white_stage(
-    x: np.ndarray, y: np.ndarray, n_restarts: int, names: tuple[str, str]
-) -> tuple[FittedGP, Profile] | None:
+def white_stage(x: np.ndarray, y: np.ndarray, n_restarts: int) -> tuple[FittedGP, Profile] | None:
     """The squared-exponential GP of readings ``x`` (n,) mapped to ``y`` (n,) with the
     identity mean and a learned white noise, as :func:`cascal.fit_gp` fits it (its exact
     factorisation at the maximum), and the search's :class:`Profile`. None where the
@@ -844,7 +872,7 @@ def white_stage(
     if _at_edge([ll, u], bounds):
         return None
     lv = math.log(_profiled_variance(x, r, ll, u))
-    gp = _exact(x, y, np.array([ll, lv, u + lv]), None, names)
+    gp = _exact(x, y, np.array([ll, lv, u + lv]), None)
     return (gp, found) if gp is not None and _agrees(gp, value) else None
 
 
@@ -854,7 +882,6 @@ def noise_stage(
     factor: np.ndarray,
     white: tuple[FittedGP, Profile],
     n_restarts: int,
-    names: tuple[str, str],
 ) -> FittedGP | None:
     """As :func:`white_stage` with a known noise ``factor @ factor.T`` (factor (n, m))
     beside the learned white noise, searched from ``white`` (:func:`white_stage` of the
@@ -869,7 +896,7 @@ def noise_stage(
     value, *theta = found[0]
     if _at_edge(theta, bounds):
         return None
-    gp = _exact(x, y, np.array(theta), noise, names)
+    gp = _exact(x, y, np.array(theta), noise)
     return gp if gp is not None and _agrees(gp, value) else None
 
 
@@ -915,13 +942,16 @@ def _agrees(gp: FittedGP, value: float) -> bool:
     return abs(gp.log_marginal_likelihood - value) <= _AGREE * max(1.0, abs(value))
 
 
-def _exact(x, y, theta, noise, names) -> FittedGP | None:
+def _exact(x, y, theta, noise) -> FittedGP | None:
     """The GP at ``theta`` ``[log length_scale, log variance, log noise_variance]``: the
     target covariance factorised (LAPACK ``dpotrf`` through NumPy, in compiled code) as
     :func:`cascal.fit_gp` does with given hyperparameters; None where that needs jitter."""
     ls, variance, sn2 = (math.exp(float(v)) for v in theta)
     cov = noise.cov if noise is not None else np.zeros((0, 0))
-    L, alpha, lml, ok = _factorise(x, y - x, 0.5 / (ls * ls), variance, sn2, cov)
+    try:
+        L, alpha, lml, ok = _factorise(x, y - x, 0.5 / (ls * ls), variance, sn2, cov)
+    except np.linalg.LinAlgError:  # not positive definite: fit_gp adds jitter
+        return None
     if not ok:
         return None
     kernel = SquaredExp(ls, variance)
@@ -980,9 +1010,7 @@ def posterior_factor(gp: FittedGP, x: np.ndarray) -> tuple[np.ndarray, np.ndarra
     covariance, pivoted Cholesky stopped where every remaining pivot is below eps times the
     prior variance."""
     k = gp.kernel
-    return _posterior(
-        gp.x, gp.L, gp.alpha, 0.5 / (k.length_scale * k.length_scale), k.variance, x
-    )
+    return _posterior(gp.x, gp.L, gp.alpha, 0.5 / (k.length_scale * k.length_scale), k.variance, x)
 
 
 @njit(cache=True)
