@@ -33,10 +33,11 @@ class StudyConfig:
 
     Attributes:
         seed: Root seed of the study.
-        n_restarts: Local optimiser starts per GP stage fit, at most: a likelihood table's
-            best local maxima (stage A: the exact off-grid table; stage B: the grid
-            surrogate), then the probes of :func:`cascal.fit_gp`. With three, no fit of the
-            benchmark's sample ends below a five-start L-BFGS-B from random starts
+        n_restarts: Local searches per GP stage fit, at most: the best local maxima of
+            a likelihood table over the length scale, each refined by Brent's method
+            (:mod:`cascal.studyfit`; for other kernels than ``"se"``, and where that fit
+            declines, the Newton runs of :func:`cascal.fit_gp`). With three, no fit of
+            the benchmark's sample ends below a five-start L-BFGS-B from random starts
             (``make bench`` counts both directions).
         kernel: Kernel of every GP stage.
         methods: Methods compared in every trial.
