@@ -662,7 +662,7 @@ def _search_profile(x, r, llo, lhi, lo, hi, n_restarts):
     values and log noise ratios."""
     lls = _grid(llo, lhi)
     vals, us, table = _profile_rows(x, r, lls, lo, hi, 2, _DROP)
-    fine = _fine(lls, _peaks(vals, n_restarts), llo, lhi)
+    fine = _fine(lls, _starts(vals, us, table, lo, hi, n_restarts)[0], llo, lhi)
     if fine.size:
         fv, fu, ft = _profile_rows(x, r, fine, lo, hi, 1, np.inf)
         lls, vals, us, table = _merge(lls, vals, us, table, fine, fv, fu, ft)
