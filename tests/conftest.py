@@ -23,3 +23,13 @@ def assert_allclose():
 def rng():
     """A fixed-seed generator, fresh for every test."""
     return np.random.default_rng(20230710)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _compiled_study():
+    """The study's compiled fits, compiled once before any test (Numba caches them, about
+    40 s the first time): the study's worker processes in the tests load them instead of
+    compiling them each, inside the tests' waits."""
+    from cascal.montecarlo import StudyConfig, run_trial
+
+    run_trial(StudyConfig(), 0)
