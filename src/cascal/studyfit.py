@@ -3,7 +3,7 @@
 The Monte Carlo study fits 36 000 small GPs. :func:`cascal.fit_gp` spends most of a fit
 in Python around LAPACK calls on 64 x 64 and 100 x 100 matrices; here the same maxima of
 the log marginal likelihood are found in compiled loops (Numba), with every free
-hyperparameter but one maximised out of an inner, cheap problem:
+hyperparameter but the length scale maximised out of an inner, cheap problem:
 
 * :func:`fit_profiled` (stage A, the homoscedastic stage B): the variance in closed form,
   the noise ratio ``g`` by Newton on a one-dimensional row. A pivoted Cholesky factor of
@@ -11,19 +11,22 @@ hyperparameter but one maximised out of an inner, cheap problem:
   ``PIVOT_TOL / n``, as :mod:`cascal.surrogate`) and a tridiagonal reduction of ``F^T F``
   bordered by ``F^T r`` give ``r^T (R + g I)^-1 r`` and ``log det(R + g I)`` for every
   ``g`` in O(k); short length scales (k > n / 2) reduce ``R`` bordered by ``r`` (LAPACK
-  ``dsytrd``) instead. The length scale is searched on rows 0.8 apart in log (as the
-  library's table) and each of the best local maxima (at most three, within 3 nats) is
-  refined by Brent's method between its neighbouring rows.
+  ``dsytrd``) instead. The length scale is searched on the library's rows (0.8 apart in
+  log, then 0.2 apart around the starts), and from each start (the rows' best local
+  maxima and the table's of rows x noise ratios, at most ``n_restarts`` of each within 3
+  nats) refined by Brent's method between its neighbouring rows.
 * :func:`fit_dense` (the bayes stage B, a known noise ``Sigma = G G^T`` plus a learned
   white noise): for a length scale and a noise variance, ``N = Sigma + sn2 I`` is diagonal
-  in the basis of ``G``'s left singular vectors, so ``B = F^T N^-1 F`` and one reduction
-  of ``B`` bordered by ``F^T N^-1 r`` give every signal variance in O(k). Brent's method
-  maximises over the log noise variance for each length scale and over the log length
-  scale between the rows that bracket each start.
+  in the basis of Sigma's eigenvectors, so ``B = F^T N^-1 F`` and one reduction of ``B``
+  bordered by ``F^T N^-1 r`` give every signal variance in O(k). Its rows are the
+  white-noise fit's near its best (at most 0.4 apart, then 0.2 around the best), at that
+  fit's noise variance; from each start Brent's method over the log length scale, with
+  Brent's method over the log noise variance at each length scale.
 
-Nothing here allocates in a loop over readings or does I/O; results are log
-hyperparameters and the maximum, which the caller checks against the exact dense
-likelihood (:mod:`cascal.montecarlo`).
+:func:`white_stage` and :func:`noise_stage` give the fitted GP, factorised densely at the
+maximum (LAPACK ``dpotrf``), or None where the search declines: a maximum at a bound, a
+target covariance that needs jitter, or a compiled maximum that the dense likelihood does
+not confirm; the study then fits that stage with :func:`cascal.fit_gp`. No I/O here.
 """
 
 from __future__ import annotations
@@ -62,7 +65,7 @@ _AGREE = 1e-7
 _LOG2PI = math.log(2.0 * math.pi)
 #: Noise ratios of a row's first scan (log-spaced over the bounds).
 _SCAN = 45
-#: Brent's tolerance (log units): a maximum's value is then within about 1e-9 nats.
+#: Brent's tolerance (log units): a maximum's value is then within about 1e-6 nats.
 _XTOL = 1e-4
 #: Shorter length scales than a row of rank above n / 2 that lies this far (nats) below
 #: the best row are not tabulated, unless the white-noise limit comes that close.
@@ -487,19 +490,11 @@ def _profile(x, r, ll, lo, hi, u0, dense, scan=None):
 @njit(cache=True)
 def _profiled_variance(x, r, ll, u):
     """The variance ``r^T (R + g I)^-1 r / n`` that the profile takes at (ll, u), from the
-    same factor as :func:`_profile` (its rank unbounded)."""
-    n = x.size
+    same row as :func:`_profile`."""
     g = math.exp(u)
-    Ft, _ = _pivoted(x, 0.5 * math.exp(-2.0 * ll), PIVOT_TOL / n, n)
-    k = Ft.shape[0]
-    B = np.zeros((k + 1, k + 1))
-    B[1:, 1:] = Ft @ Ft.T
-    b = Ft @ r
-    B[0, 1:] = b
-    B[1:, 0] = b
-    t, e2 = _householder(B)
-    p0, _ = _pivots_value(t[1:], e2[1:], g)
-    return (r @ r - e2[0] / p0) / g / n
+    t, e2, c0, c1, e, _, _ = _profile_form(x, r, ll, False)
+    p0, _ = _pivots_value(t, e2, g)
+    return (c0 + c1 / p0) / g**e / x.size
 
 
 @njit(cache=True)
@@ -715,11 +710,13 @@ def fit_profiled(x: np.ndarray, r: np.ndarray, bounds: np.ndarray, n_restarts: i
     readings ``x`` (n,) (squared exponential, learned white noise).
 
     As :mod:`cascal.surrogate`'s off-grid table: rows 0.8 apart over the bounds (of those
-    of a rank above n / 2, every second, and none beyond one 20 nats below the best),
-    then rows 0.2 apart out to the neighbours of the best local maxima (at most
-    ``n_restarts``, within 3 nats); from each of the combined table's best local maxima,
-    Brent's method between its neighbouring rows; then the two probes of
-    :func:`cascal.fit_gp` (0.2 to either side of the best maximum), refined where higher.
+    of a rank above n / 2, every second, and none once the rows fall 20 nats below the
+    best), then rows 0.2 apart out to the neighbours of each start; the starts are the
+    best local maxima of the rows' maxima and of the table of rows x :data:`_SCAN` noise
+    ratios (another branch of the noise ratio), at most ``n_restarts`` of each within 3
+    nats; from each start, Brent's method between its neighbouring rows, the noise ratio
+    followed from the start's (the rows 0.2 apart do what :func:`cascal.fit_gp`'s probes
+    do).
 
     Args:
         bounds: Log bounds (2, 2) of the length scale and the noise ratio, as
@@ -874,12 +871,14 @@ def fit_dense(
 
     As :func:`cascal.surrogate.dense_starts` does, the rows are those of the white-noise
     fit's table (``white``) within 20 nats of its best (4 on the side of shorter length
-    scales: a known noise favours longer ones); at each, the signal variance is maximised
-    with the white noise at that fit's (``log_noise``). From each of the rows' best local
-    maxima (at most ``n_restarts``, within 3 nats), Brent's method between the
-    neighbouring rows over the log length scale, where at each length scale Brent's method
-    maximises over the log noise variance (within 1 of the last best; all its bounds where
-    the maximum lies at that bracket's edge) and Newton over the log signal variance.
+    scales: a known noise favours longer ones), made at most :data:`_BAYES_ROWS` apart; at
+    each, the signal variance is maximised with the white noise at that fit's
+    (``log_noise``); then rows 0.2 apart out to the neighbours of the rows' best local
+    maxima (at most ``n_restarts``, within 3 nats). From each of those maxima, Brent's
+    method between the neighbouring rows over the log length scale, where at each length
+    scale Brent's method maximises over the log noise variance (within 0.5 of the last
+    best; all its bounds where the maximum lies at that bracket's edge) and Newton over the
+    log signal variance.
 
     Args:
         bounds: Log bounds (3, 2) of the length scale, the variance and the noise variance,
