@@ -146,7 +146,7 @@ class _Fitter:
         return {"kernel": c.kernel, "n_restarts": c.n_restarts, "seed": self.seed}
 
     def stage0(self) -> dict[str, float]:
-        found = self._white(*self.trial.d2)
+        found = self._white(*self.trial.d2, branches=False)  # (never needed for stage A)
         if found is None:
             # (a stage's seed derives from (seed, stage) alone: the one-stage chain fits
             # stage A exactly as the two-stage one would)
@@ -194,12 +194,12 @@ class _Fitter:
             return partial(corrected, device)
         return partial(chebyshev_mean, device)
 
-    def _white(self, x: np.ndarray, y: np.ndarray):
+    def _white(self, x: np.ndarray, y: np.ndarray, branches: bool = True):
         if not self.compiled:
             return None
         from .studyfit import white_stage  # (Numba loads with it: only where the study runs)
 
-        return white_stage(x, y, self.config.n_restarts)
+        return white_stage(x, y, self.config.n_restarts, branches)
 
 
 def _table(x: np.ndarray, y: np.ndarray, stage: str):
