@@ -132,6 +132,7 @@ class _Fitter:
         self.compiled = config.kernel == "se"
         self._chain: Cascade | None = None
         self.gp0: FittedGP | None = None
+        self.posterior = None  # stage A's posterior at stage B's upper readings: (mean, factor)
         self.white = None  # the compiled white-noise fit of stage B: (gp, its search)
 
     @property
