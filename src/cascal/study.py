@@ -153,7 +153,9 @@ def _run_study(
         chunks = [pending[i : i + size] for i in range(0, len(pending), size)]
         done = trials - len(pending)
         if len(pending) >= _PRELOAD:  # the outputs' imports while the workers compute
-            threading.Thread(target=_preload, name="preload", daemon=True).start()
+            # (not a daemon: the interpreter waits for it at exit; a daemon thread frozen
+            # inside an import by an early Ctrl-C could hang the exit, which a CI run saw)
+            threading.Thread(target=_preload, name="preload").start()
         if progress:
             progress(done, trials)
         try:
