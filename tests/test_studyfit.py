@@ -7,14 +7,12 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from cascal import studyfit as sf
 from cascal.cascade import Cascade
 from cascal.gp import fit_gp
 from cascal.kernels import SquaredExp
-from cascal.likelihood import Objective, search_bounds
+from cascal.likelihood import Objective
 from cascal.montecarlo import StudyConfig, _Fitter, run_trial, trial_rng
 from cascal.noise import Dense
 from cascal.simulation import j_reference, simulate_trial
@@ -165,22 +163,6 @@ def test_factorisation_equals_the_librarys(fitted):
     assert np.allclose(ours.alpha, lib.alpha, rtol=1e-8, atol=1e-8 * np.abs(lib.alpha).max())
     K = lib.L @ lib.L.T
     assert np.abs(ours.L @ ours.L.T - K).max() <= 1e-14 * np.abs(K).max()
-
-
-@settings(max_examples=40, deadline=None)
-@given(
-    n=st.integers(3, 40),
-    seed=st.integers(0, 2**32 - 1),
-    known=st.booleans(),
-)
-def test_bounds_equal_search_bounds(n, seed, known):
-    rng = np.random.default_rng(seed)
-    x = np.sort(rng.uniform(-2.0, 3.0, n))
-    x[rng.integers(n)] = x[0]  # a repeated reading
-    r = rng.normal(0.0, rng.uniform(1e-6, 1.0), n)
-    noise = Dense.from_factor(rng.normal(0, 1e-3, (n, 3))) if known else None
-    expected = search_bounds(x, r, SquaredExp(), noise, True, noise is None)
-    assert np.array_equal(sf._bounds(x, r, noise), expected)
 
 
 def test_a_maximum_at_a_bound_is_left_to_the_library():

@@ -226,7 +226,8 @@ def plot_cost_distribution(
         fig: Figure to draw into (a new one if None).
         scale, unit: Display scale of J (default micrometres).
     """
-    if fig is None:  # (margins fixed for the legend: constrained layout took 0.6 s here)
+    if fig is None:  # (margins fixed for the legend: constrained layout added 0.3 s to
+        # the study's PNG and SVG of 12 000 trials)
         fig = Figure(figsize=(7.5, 5.5))
         fig.subplots_adjust(left=0.1, right=0.66, bottom=0.1, top=0.94, hspace=0.08)
     ax_pdf, ax_cdf = fig.subplots(2, 1, sharex=True)

@@ -41,7 +41,7 @@ from numba.extending import get_cython_function_address
 
 from .gp import FittedGP
 from .kernels import SquaredExp
-from .likelihood import RATIO_MAX
+from .likelihood import search_bounds
 from .means import make_mean
 from .noise import Dense
 from .surrogate import _ROWS, _ROWS_SHORT, COARSE, FINE, MARGIN, PIVOT_TOL
@@ -63,6 +63,7 @@ _EDGE = 1e-6
 _AGREE = 1e-7
 
 _LOG2PI = math.log(2.0 * math.pi)
+_SE = SquaredExp()
 #: Noise ratios of a row's first scan (log-spaced over the bounds).
 _SCAN = 45
 #: Brent's tolerance (log units): a maximum's value is then within about 1e-6 nats.
@@ -653,8 +654,8 @@ def _merge(a, fa, ua, ta, b, fb, ub, tb):
 
 @njit(cache=True)
 def _search_profile(x, r, llo, lhi, lo, hi, n_restarts, branches):
-    """:func:`fit_profiled`'s search: maxima (m, 3) best first, then the table's rows,
-    values and log noise ratios."""
+    """:func:`fit_profiled`'s search: maxima (m, 3) best first, then the rows and their
+    maxima."""
     lls = _grid(llo, lhi)
     vals, us, table = _profile_rows(x, r, lls, lo, hi, 2, _DROP)
     if branches:
@@ -671,7 +672,7 @@ def _search_profile(x, r, llo, lhi, lo, hi, n_restarts, branches):
         a, b = lls[max(i - 1, 0)], lls[min(i + 1, lls.size - 1)]
         v, ll, u, _ = _refine_profile(x, r, a, b, lls[i], llo, lhi, lo, hi, u0[m])
         out[m, 0], out[m, 1], out[m, 2] = v, ll, u
-    return out[np.argsort(-out[:, 0], kind="mergesort")], lls, vals, us
+    return out[np.argsort(-out[:, 0], kind="mergesort")], lls, vals
 
 
 @njit(cache=True)
@@ -699,13 +700,12 @@ def _starts(vals, us, table, lo, hi, k):
 @dataclass(frozen=True, slots=True)
 class Profile:
     """A profiled fit's search: its maxima (m, 3) ``[value, log length_scale, log noise
-    ratio]``, best first, and its table: rows ``lls`` (s,) sorted, ``vals`` (s,) and
-    ``us`` (s,)."""
+    ratio]``, best first, and its rows ``lls`` (s,) sorted with their maxima ``vals``
+    (s,)."""
 
     maxima: np.ndarray
     lls: np.ndarray
     vals: np.ndarray
-    us: np.ndarray
 
 
 def fit_profiled(
@@ -971,7 +971,7 @@ def white_stage(
     maximum lies at a bound of the search, or the compiled likelihood and the exact one
     disagree there: the caller then fits with fit_gp."""
     r = y - x
-    bounds = _bounds(x, r, None)
+    bounds = search_bounds(x, r, _SE, None, True, True)
     found = fit_profiled(x, r, bounds, n_restarts, branches)
     if not found.maxima.shape[0] or not np.isfinite(found.maxima[0, 0]):
         return None
@@ -995,7 +995,7 @@ def noise_stage(
     same readings and targets); None where that is left to fit_gp."""
     r = y - x
     noise = Dense.from_factor(factor)
-    bounds = _bounds(x, r, noise)
+    bounds = search_bounds(x, r, _SE, noise, True, False)
     log_noise = math.log(white[0].noise_variance)
     found = fit_dense(x, r, factor, bounds, white[1], log_noise, n_restarts)
     if not found or not np.isfinite(found[0][0]):
@@ -1005,39 +1005,6 @@ def noise_stage(
         return None
     gp = _exact(x, y, np.array(theta), noise)
     return gp if gp is not None and _agrees(gp, value) else None
-
-
-@njit(cache=True)
-def _span_gap(x):
-    """Range of the readings ``x`` (or 1 where it is 0) and their smallest positive gap
-    (or that range)."""
-    xs = np.sort(x)
-    span = xs[-1] - xs[0]
-    if span == 0.0:
-        span = 1.0
-    gap = np.inf
-    for i in range(1, xs.size):
-        d = xs[i] - xs[i - 1]
-        if 0.0 < d < gap:
-            gap = d
-    return span, gap if np.isfinite(gap) else span
-
-
-def _bounds(x: np.ndarray, r: np.ndarray, known: Dense | None) -> np.ndarray:
-    """:func:`cascal.likelihood.search_bounds` of a squared-exponential stage with a
-    learned noise, profiled where ``known`` is None (the same numbers, fewer calls)."""
-    span, gap = _span_gap(x)
-    n = r.size
-    v = float(np.square(r - r.mean()).sum()) / n or float(np.square(r).sum()) / n
-    if known is not None:
-        v = max(v, float(np.mean(np.diagonal(known.cov))))
-    v = v or 1.0
-    scale = (max(0.5 * gap, 1e-4 * span), 1e2 * span)
-    if known is None:
-        rows = [scale, (1e-10, RATIO_MAX)]
-    else:
-        rows = [scale, (1e-6 * v, 1e4 * v), (1e-10 * v, 10.0 * v)]
-    return np.log(np.asarray(rows, dtype=float))
 
 
 def _at_edge(theta, bounds: np.ndarray) -> bool:
