@@ -7,6 +7,9 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from numba import njit
 
 from cascal import studyfit as sf
 from cascal.cascade import Cascade
@@ -25,6 +28,28 @@ def _trial(index: int):
     rng = trial_rng(CONFIG.seed, index)
     trial = simulate_trial(rng)
     return trial, int(rng.integers(2**63))
+
+
+@njit(fastmath=sf._FAST)
+def _exps(z):
+    out = np.empty(z.size)
+    for i in range(z.size):  # a loop as the kernels' (vectorised, contracted)
+        out[i] = sf._exp_neg(z[i])
+    return out
+
+
+def test_the_kernels_exp_is_within_one_ulp_of_libm():
+    z = np.concatenate((-np.linspace(0.0, 708.0, 200_001), -np.geomspace(1e-300, 1.0, 2001)))
+    ours = _exps(z)
+    exact = np.array([math.exp(v) for v in z])
+    assert np.all(np.abs(ours - exact) <= np.array([math.ulp(v) for v in exact]))
+    assert np.mean(ours == exact) > 0.9  # mostly correctly rounded
+    assert np.array_equal(_exps(np.array([-708.5, -800.0, -1e300, -np.inf])), np.zeros(4))
+
+
+@given(st.floats(-708.0, 0.0))
+def test_the_kernels_exp_property(x):
+    assert abs(_exps(np.array([x]))[0] - math.exp(x)) <= math.ulp(math.exp(x))
 
 
 @pytest.fixture(scope="module")

@@ -58,17 +58,21 @@ class SensorMap:
         """``n`` equally spaced true positions on ``[lo, hi]`` and their noise-free readings,
         each (n,), m.
 
-        No sine or cosine per position: with ``j = q a + b``, ``exp(i w y_j)`` is the
-        product of ``exp(i w (lo + q a h))`` and ``exp(i w b h)``, two tables of about
-        ``sqrt(n)`` rows (each product adds a rounding of 1e-16 relative to the amplitude).
+        No sine or cosine per position: position ``j q + p`` is a coarse angle ``c_j`` plus
+        a fine one ``f_p``, ``q`` about ``sqrt(n)``, and ``a sin(c + f) + b cos(c + f) =
+        cos c (b cos f + a sin f) + sin c (a cos f - b sin f)``: two small matrix products
+        of tables of ``sqrt(n)`` rows (round-off of 1e-16 relative to the amplitudes).
         """
         y = np.linspace(lo, hi, n)
         h = (hi - lo) / max(n - 1, 1)
         q = math.isqrt(max(n - 1, 0)) + 1
-        coarse = np.exp(1j * np.multiply.outer(lo + q * h * np.arange(-(-n // q)), self.w))
-        fine = np.exp(1j * np.multiply.outer(h * np.arange(q), self.w))
-        e = (coarse[:, None, :] * fine[None, :, :]).reshape(-1, self.w.size)[:n]
-        return y, y + (e @ (self.b - 1j * self.a)).real  # Re(e (b - i a)) = a sin + b cos
+        coarse = np.multiply.outer(lo + q * h * np.arange(-(-n // q)), self.w)
+        fine = np.multiply.outer(h * np.arange(q), self.w)
+        cf, sf = np.cos(fine), np.sin(fine)
+        cb = (cf * self.b + sf * self.a).T  # (10, q)
+        sb = (cf * self.a - sf * self.b).T
+        e = np.cos(coarse) @ cb + np.sin(coarse) @ sb  # (coarse, q): position j q + p
+        return y, y + e.ravel()[:n]
 
     def slope(self, y: np.ndarray) -> np.ndarray:
         """d reading / d y* at ``y`` (m,), dimensionless."""
