@@ -219,6 +219,9 @@ def test_dense_from_factor(rng, k):
     F, G = d.factor(N), Dense(C).factor(N)
     assert F.shape == G.shape
     assert_allclose(F @ F.T, G @ G.T, rtol=0, atol=1e-12 * w[-1])
+    given = Dense.from_factor(U, np.linalg.eigh(U.T @ U))  # the caller's eigenpairs
+    assert np.array_equal(given.factor(N), F) and np.array_equal(given.dense(N), d.dense(N))
+    assert given.min_eigenvalue == d.min_eigenvalue
     with pytest.raises(InputError, match="factor"):
         Dense.from_factor(np.ones(N))
     with pytest.raises(InputError, match="NaN"):

@@ -148,10 +148,13 @@ class Dense(Noise):
         object.__setattr__(self, "min_eigenvalue", wmin)
 
     @classmethod
-    def from_factor(cls, factor: np.ndarray) -> Dense:
+    def from_factor(
+        cls, factor: np.ndarray, eigh: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> Dense:
         """The covariance ``U U^T`` of a factor ``U`` (n, k), positive semi-definite by
         construction: nothing is clipped, and :meth:`factor` comes from ``U`` in O(n k^2)
-        instead of an eigendecomposition of the (n, n) matrix."""
+        instead of an eigendecomposition of the (n, n) matrix. ``eigh``: the eigenpairs
+        ``np.linalg.eigh(U.T @ U)`` where the caller has them already."""
         U = np.array(factor, dtype=float)
         if U.ndim != 2:
             raise InputError(f"dense noise: expected a factor of shape (n, k), got {U.shape}")
@@ -159,8 +162,8 @@ class Dense(Noise):
             raise InputError("dense noise: the factor contains NaN or inf")
         C = U @ U.T
         C = 0.5 * (C + C.T)
-        w, V = np.linalg.eigh(U.T @ U)  # U V_i / sqrt(w_i): eigenvectors of U U^T
-        w = np.clip(w, 0.0, None)
+        w, V = eigh if eigh is not None else np.linalg.eigh(U.T @ U)
+        w = np.clip(w, 0.0, None)  # U V_i / sqrt(w_i): eigenvectors of U U^T
         out = object.__new__(cls)
         fields = cls.__dataclass_fields__  # tol and atol keep their defaults: no repair here
         for name in ("tol", "atol"):
