@@ -140,7 +140,7 @@ def _pivoted(x, a, tol, kmax):
     """Pivoted Cholesky factor of ``R_ij = exp(-a (x_i - x_j)^2)``: rows of ``F^T`` (k, n)
     and whether it stopped below ``tol`` within ``kmax`` columns."""
     n = x.size
-    Ft = np.zeros((kmax, n))
+    Ft = np.empty((kmax, n))  # (row k is written whole before it is read)
     d = np.ones(n)
     row = np.empty(n)
     k = 0
@@ -267,7 +267,8 @@ def _pivots(t, e2, z):
     pv = t[k - 1] + z
     d1 = 1.0
     d2 = 0.0
-    ld = math.log(pv)
+    prod = pv  # log det as :func:`_pivots_value` sums it
+    ld = 0.0
     l1 = 1.0 / pv
     l2 = -l1 * l1
     for i in range(k - 2, -1, -1):
@@ -277,10 +278,13 @@ def _pivots(t, e2, z):
         pv = t[i] + z - e2[i] / pv
         d1 = n1
         d2 = n2
-        ld += math.log(pv)
+        prod *= pv
+        if (i & 7) == 0:
+            ld += math.log(prod)
+            prod = 1.0
         l1 += d1 / pv
         l2 += d2 / pv - (d1 / pv) ** 2
-    return pv, d1, d2, ld, l1, l2
+    return pv, d1, d2, ld + math.log(prod), l1, l2
 
 
 @njit(cache=True)
