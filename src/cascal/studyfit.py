@@ -800,24 +800,23 @@ def _noise_form(Fh, Fp, rh, rp2, s2, r_proj, sn2, n):
     k)``, from ``Fh = U^T F`` (m, k), the complement's ``Fp = Fperp^T Fperp`` (k, k),
     ``rh = U^T r`` (m,), ``|rperp|^2`` and ``Fperp^T rperp`` (k,) (:func:`_noise_setup`)."""
     m, k = Fh.shape
-    w = 1.0 / (s2 + sn2)
-    B = np.zeros((k + 1, k + 1))
+    G = np.empty((m, k + 1))  # [rh, Fh] scaled by N^-1/2 in Sigma's eigenbasis
+    for l in range(m):
+        sw = 1.0 / math.sqrt(s2[l] + sn2)
+        G[l, 0] = rh[l] * sw
+        for i in range(k):
+            G[l, i + 1] = Fh[l, i] * sw
+    B = G.T @ G  # (B[0, 0] is not read)
+    inv = 1.0 / sn2
     for i in range(k):
-        for j in range(i + 1):
-            acc = Fp[i, j] / sn2
-            for l in range(m):
-                acc += Fh[l, i] * w[l] * Fh[l, j]
-            B[i + 1, j + 1] = acc
-            B[j + 1, i + 1] = acc
-        acc = r_proj[i] / sn2
-        for l in range(m):
-            acc += Fh[l, i] * w[l] * rh[l]
-        B[i + 1, 0] = acc
-        B[0, i + 1] = acc
+        B[i + 1, 0] += r_proj[i] * inv
+        B[0, i + 1] += r_proj[i] * inv
+        for j in range(k):
+            B[i + 1, j + 1] += Fp[i, j] * inv
     rnr = rp2 / sn2
     ldn = (n - m) * math.log(sn2)
     for l in range(m):
-        rnr += w[l] * rh[l] * rh[l]
+        rnr += rh[l] * rh[l] / (s2[l] + sn2)
         ldn += math.log(s2[l] + sn2)
     t, e2 = _tridiagonal(B)
     return t[1:], e2[1:], rnr, e2[0], ldn, float(k)
