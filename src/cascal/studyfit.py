@@ -447,7 +447,7 @@ def _brent_start(a, b, x):
 def _brent_next(s, u, fu, first):
     """Take the value ``fu`` at ``u`` into the state ``s``; the next point to evaluate,
     or NaN when the bracket is within the tolerance."""
-    a, b, x, w, v, fx, fw, fv, d, e = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9]
+    a, b, x, w, v, fx, fw, fv = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7]
     if first:
         x = w = v = u
         fx = fw = fv = fu
@@ -469,6 +469,26 @@ def _brent_next(s, u, fu, first):
             w, fw = u, fu
         elif fu >= fv or v == x or v == w:
             v, fv = u, fu
+    s[0], s[1], s[2], s[3], s[4] = a, b, x, w, v
+    s[5], s[6], s[7] = fx, fw, fv
+    return _brent_step(s)
+
+
+@njit(cache=True)
+def _brent_known(a, b, x, fx, fa, fb):
+    """State of a maximisation on [a, b] whose values at both ends and at ``x`` inside,
+    the best, are known, and the first point to evaluate: the vertex of their parabola
+    (a golden-section step where Brent's method would not take it)."""
+    w, fw, v, fv = (a, fa, b, fb) if fa >= fb else (b, fb, a, fa)
+    s = np.array([a, b, x, w, v, fx, fw, fv, b - a, b - a])
+    return s, _brent_step(s)
+
+
+@njit(cache=True)
+def _brent_step(s):
+    """The next point of a state ``s`` (:func:`_brent_start`), its step kept in ``s``; NaN
+    when the bracket is within the tolerance."""
+    a, b, x, w, v, fx, fw, fv, d, e = s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9]
     xm = 0.5 * (a + b)
     tol1 = _XTOL
     tol2 = 2.0 * tol1
@@ -493,8 +513,7 @@ def _brent_next(s, u, fu, first):
             e = (a - x) if x >= xm else (b - x)
             d = 0.3819660112501051 * e
         nxt = x + d if abs(d) >= tol1 else x + (tol1 if d >= 0.0 else -tol1)
-    s[0], s[1], s[2], s[3], s[4] = a, b, x, w, v
-    s[5], s[6], s[7], s[8], s[9] = fx, fw, fv, d, e
+    s[8], s[9] = d, e
     return nxt
 
 
@@ -588,16 +607,23 @@ def _profile_rows(x, r, lls, lo, hi, stride, drop):
 
 
 @njit(cache=True)
-def _refine_profile(x, r, a, b, ll0, llo, lhi, lo, hi, u0):
+def _refine_profile(x, r, a, b, ll0, llo, lhi, lo, hi, u0, fa=np.nan, f0=np.nan, fb=np.nan):
     """Brent's method over the log length scale in [a, b] from ``ll0`` (a bracket moved
     by 0.2 where the maximum is at its edge, within [llo, lhi]): (value, ll, u,
-    evaluations)."""
+    evaluations). ``fa, f0, fb``: the values at a, ll0 and b where known (a row's maximum
+    at ll0 and its neighbours' lower), to start from their parabola."""
     best = (-np.inf, ll0, u0)
     evals = 0
+    known = a < ll0 < b and f0 >= fa and f0 >= fb and np.isfinite(fa) and np.isfinite(fb)
     for _ in range(_MOVES):
-        s = _brent_start(a, b, best[1])
-        ll = s[2]
-        first = True
+        if known:
+            best = (f0, ll0, u0)
+            s, ll = _brent_known(a, b, ll0, f0, fa, fb)
+            first = known = False
+        else:
+            s = _brent_start(a, b, best[1])
+            ll = s[2]
+            first = True
         while np.isfinite(ll):
             v, un, _ = _profile(x, r, ll, lo, hi, best[2], False)
             evals += 1
@@ -722,8 +748,13 @@ def _search_profile(x, r, llo, lhi, lo, hi, n_restarts, branches):
     out = np.empty((rows.size, 3))
     for m in range(rows.size):
         i = rows[m]
-        a, b = lls[max(i - 1, 0)], lls[min(i + 1, lls.size - 1)]
-        v, ll, u, _ = _refine_profile(x, r, a, b, lls[i], llo, lhi, lo, hi, u0[m])
+        ia, ib = max(i - 1, 0), min(i + 1, lls.size - 1)
+        fa, f0, fb = vals[ia], vals[i], vals[ib]
+        if u0[m] != us[i]:  # a start on the table's other branch: the rows' values are not its
+            f0 = np.nan
+        v, ll, u, _ = _refine_profile(
+            x, r, lls[ia], lls[ib], lls[i], llo, lhi, lo, hi, u0[m], fa, f0, fb
+        )
         out[m, 0], out[m, 1], out[m, 2] = v, ll, u
     return out[np.argsort(-out[:, 0], kind="mergesort")], lls, vals
 
