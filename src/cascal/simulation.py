@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from .errors import InputError
 from .validation import check_count
@@ -49,10 +50,13 @@ class SensorMap:
     b: np.ndarray
     w: np.ndarray
 
+    def __post_init__(self) -> None:
+        for name in ("a", "b", "w"):  # (contiguous float64, as the compiled sums take them)
+            object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name), float))
+
     def __call__(self, y: np.ndarray) -> np.ndarray:
         """Noise-free reading at true positions ``y`` (m,), m."""
-        wy = np.multiply.outer(np.asarray(y, dtype=float), self.w)
-        return y + np.sin(wy) @ self.a + np.cos(wy) @ self.b
+        return self._evaluate(y, False)[0]
 
     def on_grid(self, n: int, lo: float = 0.0, hi: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """``n`` equally spaced true positions on ``[lo, hi]`` and their noise-free readings,
@@ -76,8 +80,7 @@ class SensorMap:
 
     def slope(self, y: np.ndarray) -> np.ndarray:
         """d reading / d y* at ``y`` (m,), dimensionless."""
-        wy = np.multiply.outer(np.asarray(y, dtype=float), self.w)
-        return 1.0 + np.cos(wy) @ (self.a * self.w) - np.sin(wy) @ (self.b * self.w)
+        return self._evaluate(y, True)[1]
 
     def is_increasing(self, lo: float = 0.0, hi: float = 1.0) -> bool:
         """True if the map is strictly increasing on ``[lo, hi]`` (a rigorous check).
@@ -111,29 +114,56 @@ class SensorMap:
         """
         r = np.asarray(readings, dtype=float)
         positions, values = table if table is not None else self.on_grid(2049, lo, hi)
-        y = np.interp(r, values, positions)
-        for _ in range(30):
-            value, slope = self.value_and_slope(y)
-            y_new = np.clip(y - (value - r) / slope, lo, hi)
-            done = np.max(np.abs(y_new - y)) <= 1e-15
-            y = y_new
-            if done:
-                break
-        return y
+        y = np.interp(r.ravel(), values, positions)
+        y = _newton(r.ravel(), y, self.a, self.b, self.w, float(lo), float(hi))
+        return y.reshape(r.shape)
 
     def value_and_slope(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``self(y)`` and ``self.slope(y)`` from one evaluation of the sinusoids, in blocks
-        of 512 positions (small temporaries stay in cache)."""
+        """``self(y)`` and ``self.slope(y)`` from one evaluation of the sinusoids."""
+        return self._evaluate(y, True)
+
+    def _evaluate(self, y: np.ndarray, slope: bool) -> tuple[np.ndarray, np.ndarray]:
         y = np.asarray(y, dtype=float)
-        value, slope = np.empty(y.shape), np.empty(y.shape)
-        aw, bw = self.a * self.w, self.b * self.w
-        for s in range(0, y.size, 512):
-            part = y[s : s + 512]
-            wy = np.multiply.outer(part, self.w)
-            sn, cs = np.sin(wy), np.cos(wy)
-            value[s : s + 512] = part + sn @ self.a + cs @ self.b
-            slope[s : s + 512] = 1.0 + cs @ aw - sn @ bw
-        return value, slope
+        value, grad = _sinusoids(y.ravel(), self.a, self.b, self.w, slope)
+        return value.reshape(y.shape), grad.reshape(y.shape) if slope else grad
+
+
+@njit(cache=True)
+def _sinusoids(y, a, b, w, slope):
+    """Readings ``y + sum_k a_k sin(w_k y) + b_k cos(w_k y)`` at ``y`` (m,), and where
+    ``slope``, their derivatives (m,) (else an empty array); compiled: no temporaries of
+    m x 10."""
+    m = y.size
+    value = np.empty(m)
+    grad = np.empty(m if slope else 0)
+    for i in range(m):
+        e = 0.0  # the sinusoids' sum, added to y last (the smaller terms summed first)
+        g = 0.0
+        for k in range(w.size):
+            t = w[k] * y[i]
+            sn = math.sin(t)
+            cs = math.cos(t)
+            e += a[k] * sn + b[k] * cs
+            if slope:
+                g += w[k] * (a[k] * cs - b[k] * sn)
+        value[i] = y[i] + e
+        if slope:
+            grad[i] = 1.0 + g
+    return value, grad
+
+
+@njit(cache=True)
+def _newton(r, y, a, b, w, lo, hi):
+    """Newton's method for the positions ``y`` (m,) whose readings are ``r`` (m,), from
+    ``y``, each step clipped to [lo, hi], until no position moves by more than 1e-15."""
+    for _ in range(30):
+        value, slope = _sinusoids(y, a, b, w, True)
+        y_new = np.minimum(np.maximum(y - (value - r) / slope, lo), hi)
+        done = np.max(np.abs(y_new - y)) <= 1e-15 if y.size else True
+        y = y_new
+        if done:
+            break
+    return y
 
 
 def draw_map(rng: np.random.Generator) -> SensorMap:
