@@ -346,7 +346,8 @@ def search_bounds(
     gaps = gaps[gaps > 0]  # the distinct positions' gaps
     gap = float(gaps.min()) if gaps.size else span
     n = r.size  # the variance (as np.var), else the mean square, at least the known noise's
-    v = float(np.square(r - r.mean()).sum()) / n or float(np.square(r).sum()) / n
+    add = np.add.reduce  # (as .mean() and .sum() sum, without their Python wrappers)
+    v = float(add(np.square(r - add(r) / n))) / n or float(add(np.square(r))) / n
     if known is not None:
         v = max(v, float(np.mean(known.diagonal(r.size))))
     v = v or 1.0  # no scale in the data at all (every correction 0, no known noise)
@@ -381,11 +382,9 @@ def search_bounds(
         out = [rows[name] for name in kernel.names]
         if learn_noise:
             out.append(rows["noise_variance"])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        b = np.log(np.asarray(out, dtype=float))
-    if not np.all(np.isfinite(b)) or np.any(b[:, 0] > b[:, 1]):
+    if not all(0.0 < lo <= hi < math.inf for lo, hi in out):
         raise InputError(f"bounds: expected 0 < lower <= upper, got {out}")
-    return b
+    return np.log(np.asarray(out, dtype=float))
 
 
 def _leaves(kernel: Kernel, unit: bool = True) -> list[tuple[Kernel, bool]]:

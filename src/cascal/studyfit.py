@@ -1110,52 +1110,61 @@ def _exact(x, y, theta, noise) -> FittedGP | None:
     :func:`cascal.fit_gp` does with given hyperparameters; None where that needs jitter."""
     ls, variance, sn2 = (math.exp(float(v)) for v in theta)
     cov = noise.cov if noise is not None else np.zeros((0, 0))
-    L, alpha, lml, ok = _factorise(x, y - x, 0.5 / (ls * ls), variance, sn2, cov)
+    r = y - x
+    L, alpha = np.empty((x.size, x.size)), r.copy()  # (filled in place: the GP's own arrays)
+    lml, ok = _factorise(x, r, 0.5 / (ls * ls), variance, sn2, cov, L, alpha)
     if not ok:  # not positive definite: fit_gp adds jitter
         return None
+    L.setflags(write=False)
+    alpha.setflags(write=False)
     kernel = SquaredExp(ls, variance)
-    return FittedGP(x, y, kernel, make_mean("identity", y, x), noise, sn2, L, alpha, 0.0, lml)
+    return FittedGP(x, y, kernel, _IDENTITY, noise, sn2, L, alpha, 0.0, lml)
+
+
+#: The study's stages' prior mean.
+_IDENTITY = make_mean("identity")
 
 
 @njit(cache=True, fastmath=_FAST)
-def _factorise(x, r, a, sf2, sn2, cov):
-    """Cholesky factor (n, n) of ``sf2 R + cov + sn2 I`` (``cov`` (n, n) or empty), the
-    weights (n,) and the log marginal likelihood of residuals ``r``; ok False where the
-    factorisation fails (LAPACK ``dpotrf`` and ``dpotrs``)."""
+def _factorise(x, r, a, sf2, sn2, cov, L, alpha):
+    """The lower Cholesky factor of ``sf2 R + cov + sn2 I`` (``cov`` (n, n) or empty)
+    into ``L`` (n, n), the weights into ``alpha`` (n,) (holding ``r`` on entry), and the
+    log marginal likelihood of the residuals ``r``; ok False where the factorisation
+    fails (LAPACK ``dpotrf`` and ``dpotrs``)."""
     n = x.size
-    K = np.zeros((n, n))  # column-major lower triangle = the C-order upper one
-    for i in range(n):
-        K[i, i] = sf2 + sn2
-        for j in range(i + 1, n):
+    for i in range(n):  # C order's lower triangle: the column-major upper one
+        for j in range(i):
             d = x[i] - x[j]
-            K[i, j] = sf2 * _exp_neg(-a * d * d)
+            L[i, j] = sf2 * _exp_neg(-a * d * d)
+        L[i, i] = sf2 + sn2
     if cov.shape[0]:
         for i in range(n):
-            for j in range(i, n):
-                K[i, j] += cov[i, j]
-    uplo = np.array([ord("L")], np.uint8)
+            for j in range(i + 1):
+                L[i, j] += cov[i, j]
+    uplo = np.array([ord("U")], np.uint8)  # column-major U^T U: C order's L L^T
     size = np.array([n], np.int32)
     one = np.array([1], np.int32)
     info = np.zeros(1, np.int32)
-    _dpotrf(uplo.ctypes, size.ctypes, K.ctypes, size.ctypes, info.ctypes)
+    _dpotrf(uplo.ctypes, size.ctypes, L.ctypes, size.ctypes, info.ctypes)
     if info[0] != 0:
-        return K, r, -np.inf, False
-    alpha = r.copy()
+        return -np.inf, False
     _dpotrs(
         uplo.ctypes,
         size.ctypes,
         one.ctypes,
-        K.ctypes,
+        L.ctypes,
         size.ctypes,
         alpha.ctypes,
         size.ctypes,
         info.ctypes,
     )
-    L = K.T.copy()  # the lower factor in C order
+    for i in range(n):
+        for j in range(i + 1, n):
+            L[i, j] = 0.0
     lml = -0.5 * (r @ alpha) - 0.5 * n * _LOG2PI
     for i in range(n):
         lml -= math.log(L[i, i])
-    return L, alpha, lml, info[0] == 0
+    return lml, info[0] == 0
 
 
 def posterior_factor(gp: FittedGP, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
