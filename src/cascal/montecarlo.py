@@ -74,9 +74,11 @@ def trial_rng(seed: int, index: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(index,)))
 
 
-def _fit_record(gp: FittedGP, library: bool) -> dict[str, float]:
+def _fit_record(gp: FittedGP, library: bool, polished: bool | None = None) -> dict[str, float]:
     rec = {k: float(v) for k, v in gp.hyperparameters.items()}
     rec["library_fit"] = float(library)
+    if polished is not None:  # (the bayes stage's compiled fit: see studyfit.noise_stage)
+        rec["polished"] = float(polished)
     rec["log_marginal_likelihood"] = float(gp.log_marginal_likelihood)
     rec["jitter"] = float(gp.jitter)
     if gp.noise is not None and hasattr(gp.noise, "n_clipped"):
@@ -163,7 +165,7 @@ class _Fitter:
 
             self.posterior = posterior_factor(self.gp0, y)  # targets and factor
             self.white = self._white(x, self.posterior[0]) or False
-        gp = None
+        gp, polished = None, None
         if method == "homoscedastic" and self.white:
             gp = self.white[0]
         elif method == "bayes" and self.white:
@@ -171,11 +173,11 @@ class _Fitter:
 
             targets, factor = self.posterior
             n = self.config.n_restarts
-            gp = noise_stage(x, targets, factor, self.white, n)
+            gp, polished = noise_stage(x, targets, factor, self.white, n) or (None, None)
         if gp is None:
             gp = self.chain.with_method(method).fit(first=self.gp0).models[1]
             return gp, _fit_record(gp, True)
-        return gp, _fit_record(gp, False)
+        return gp, _fit_record(gp, False, polished)
 
     def tables(self):
         """The lookup-table method's correction, readings -> true positions: the tables

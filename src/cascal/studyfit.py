@@ -42,9 +42,10 @@ from numba.extending import get_cython_function_address, intrinsic
 
 from .gp import FittedGP
 from .kernels import SquaredExp
-from .likelihood import search_bounds
+from .likelihood import Objective, search_bounds
 from .means import make_mean
 from .noise import Dense
+from .optimize import newton_maximize
 from .surrogate import _ROWS, _ROWS_SHORT, COARSE, FINE, MARGIN, PIVOT_TOL
 
 __all__ = [
@@ -1074,23 +1075,40 @@ def noise_stage(
     factor: np.ndarray,
     white: tuple[FittedGP, Profile],
     n_restarts: int,
-) -> FittedGP | None:
+) -> tuple[FittedGP, bool] | None:
     """As :func:`white_stage` with a known noise ``factor @ factor.T`` (factor (n, m))
     beside the learned white noise, searched from ``white`` (:func:`white_stage` of the
-    same readings and targets); None where that is left to fit_gp."""
+    same readings and targets): the GP and whether its maximum was polished; None where
+    that is left to fit_gp.
+
+    Where the exact likelihood disagrees with the compiled one at its maximum (a white
+    noise far below Sigma's and the kernel's smallest directions, which the compiled
+    likelihood drops: 1e-4 to 4e-3 nats in 9 of 1500 study trials), Newton's method on the
+    exact likelihood (:func:`cascal.optimize.newton_maximize`, as :func:`cascal.fit_gp`'s
+    runs) from each compiled maximum polishes it: in those 9 trials to within 5e-8 of
+    fit_gp's maximum, in 0.6 ms against fit_gp's 6 to 96 ms."""
     r = y - x
     eigh = np.linalg.eigh(factor.T @ factor)
     noise = Dense.from_factor(factor, eigh)
     bounds = search_bounds(x, r, _SE, noise, True, False)
     log_noise = math.log(white[0].noise_variance)
     found = fit_dense(x, r, factor, bounds, white[1], log_noise, n_restarts, eigh)
-    if not found or not np.isfinite(found[0][0]):
+    found = [row for row in found if np.isfinite(row[0])]
+    if not found:
         return None
     value, *theta = found[0]
     if _at_edge(theta, bounds):
         return None
     gp = _exact(x, y, np.array(theta), noise)
-    return gp if gp is not None and _agrees(gp, value) else None
+    if gp is not None and _agrees(gp, value):
+        return gp, False
+    obj = Objective(x, r, _SE, noise, True)
+    runs = [newton_maximize(obj.value_and_derivatives, np.array(t[1:]), bounds) for t in found]
+    best = max(runs, key=lambda run: run.value)
+    if not (best.converged and math.isfinite(best.value)) or _at_edge(best.theta, bounds):
+        return None
+    gp = _exact(x, y, best.theta, noise)
+    return (gp, True) if gp is not None and _agrees(gp, best.value) else None
 
 
 def _at_edge(theta, bounds: np.ndarray) -> bool:
