@@ -340,16 +340,17 @@ def search_bounds(
 ) -> np.ndarray:
     """Finite log-space bounds (dim, 2) of :class:`Objective`'s ``theta`` for readings ``x``
     (n,) and residuals ``r`` (n,), scaled to the data; ``user`` overrides by name."""
-    xs = np.sort(x)
+    add = np.add.reduce  # (as np.sort, .min(), .mean() and .sum(), without their wrappers)
+    xs = np.array(x, dtype=float)
+    xs.sort()
     span = float(xs[-1] - xs[0]) or 1.0
     gaps = xs[1:] - xs[:-1]
     gaps = gaps[gaps > 0]  # the distinct positions' gaps
-    gap = float(gaps.min()) if gaps.size else span
+    gap = float(np.minimum.reduce(gaps)) if gaps.size else span
     n = r.size  # the variance (as np.var), else the mean square, at least the known noise's
-    add = np.add.reduce  # (as .mean() and .sum() sum, without their Python wrappers)
     v = float(add(np.square(r - add(r) / n))) / n or float(add(np.square(r))) / n
     if known is not None:
-        v = max(v, float(np.mean(known.diagonal(r.size))))
+        v = max(v, float(add(known.diagonal(n))) / n)
     v = v or 1.0  # no scale in the data at all (every correction 0, no known noise)
     rows: dict[str, tuple[float, float]] = {}
     for name, (leaf, unit) in zip(kernel.names, _leaves(kernel), strict=True):
