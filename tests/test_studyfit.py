@@ -108,7 +108,7 @@ def test_known_noise_rows_equal_the_dense_likelihood(fitted):
 
 
 @pytest.mark.parametrize("kind", [0, 1])
-def test_row_derivatives_match_finite_differences(fitted, kind):
+def test_row_derivatives_match_finite_differences_and_scans_values(fitted, kind):
     trial, fitter = fitted
     x = trial.d1[0]
     targets, factor = fitter.posterior
@@ -123,6 +123,10 @@ def test_row_derivatives_match_finite_differences(fitted, kind):
         Fh, Fp, rh, rp2, r_proj, _ = sf._noise_setup(x, r, U, math.log(0.4))
         form = sf._noise_form(Fh, Fp, rh, rp2, w[keep], r_proj, 2e-8, x.size)
         points = (-8.0, -6.5, -4.0)
+    lo, h = -23.0, 0.6  # the scan, all points at once: the same numbers as one by one
+    scan = sf._scan(kind, *form, x.size, lo, h)
+    assert np.array_equal(scan, [sf._value(kind, *form, x.size, lo + i * h) for i in range(45)])
+    assert np.isfinite(scan).all()
     h = 1e-3  # (values carry 1e-14 of round-off: a smaller step would show it in d2)
     for u in points:
         _, d1, d2 = sf._row(kind, *form, x.size, u)

@@ -368,6 +368,52 @@ def _dense_row(t, e2, rnr, c, ldn, k, n, u):
 
 
 @njit(cache=True)
+def _scan(kind, t, e2, c0, c1, e, nx, n, lo, h):
+    """:func:`_value` at the :data:`_SCAN` points ``lo + i h`` (the same numbers), the
+    recurrence run for all of them at once (vectorised across the points)."""
+    k = t.size
+    u = np.empty(_SCAN)
+    z = np.empty(_SCAN)
+    pv = np.empty(_SCAN)
+    prod = np.empty(_SCAN)
+    ld = np.zeros(_SCAN)
+    for j in range(_SCAN):
+        u[j] = lo + j * h
+        z[j] = math.exp(u[j]) if kind == 0 else math.exp(-u[j])
+        pv[j] = t[k - 1] + z[j]
+        prod[j] = pv[j]
+    for i in range(k - 2, -1, -1):  # :func:`_pivots_value`'s steps
+        ti = t[i]
+        ei = e2[i]
+        for j in range(_SCAN):
+            p = ti + z[j] - ei / pv[j]
+            pv[j] = p
+            prod[j] *= p
+        if (i & 7) == 0:
+            for j in range(_SCAN):
+                ld[j] += math.log(prod[j])
+                prod[j] = 1.0
+    out = np.empty(_SCAN)
+    for j in range(_SCAN):  # :func:`_value`'s
+        ldj = ld[j] + math.log(prod[j])
+        if kind == 0:
+            q = (c0 + c1 / pv[j]) / z[j] ** e
+            if not q > 0.0:
+                out[j] = -np.inf
+            else:
+                out[j] = (
+                    -0.5 * n * math.log(q / n) - 0.5 * (ldj + nx * u[j]) - 0.5 * n * (1.0 + _LOG2PI)
+                )
+        else:
+            quad = c0 - c1 / pv[j]
+            if not quad > 0.0:
+                out[j] = -np.inf
+            else:
+                out[j] = -0.5 * quad - 0.5 * (e + ldj + nx * u[j]) - 0.5 * n * _LOG2PI
+    return out
+
+
+@njit(cache=True)
 def _row_max(kind, t, e2, c0, c1, e, nx, n, lo, hi, u0, scan=None):
     """Maximum over ``u`` in [lo, hi] of a row (``kind`` 0: :func:`_profiled_row`, 1:
     :func:`_dense_row` with ``c0, c1, e, nx = rnr, c, ldn, k``): from ``u0`` by Newton in
@@ -382,8 +428,9 @@ def _row_max(kind, t, e2, c0, c1, e, nx, n, lo, hi, u0, scan=None):
     best = -np.inf
     ib = 0
     h = (hi - lo) / (_SCAN - 1)
+    values = _scan(kind, t, e2, c0, c1, e, nx, n, lo, h)
     for i in range(_SCAN):
-        v = _value(kind, t, e2, c0, c1, e, nx, n, lo + i * h)
+        v = values[i]
         if scan is not None:
             scan[i] = v
         if v > best:
