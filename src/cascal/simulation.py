@@ -64,19 +64,12 @@ class SensorMap:
 
         No sine or cosine per position: position ``j q + p`` is a coarse angle ``c_j`` plus
         a fine one ``f_p``, ``q`` about ``sqrt(n)``, and ``a sin(c + f) + b cos(c + f) =
-        cos c (b cos f + a sin f) + sin c (a cos f - b sin f)``: two small matrix products
-        of tables of ``sqrt(n)`` rows (round-off of 1e-16 relative to the amplitudes).
+        cos c (b cos f + a sin f) + sin c (a cos f - b sin f)``, from tables of ``sqrt(n)``
+        rows (round-off of 1e-16 relative to the amplitudes).
         """
         y = np.linspace(lo, hi, n)
         h = (hi - lo) / max(n - 1, 1)
-        q = math.isqrt(max(n - 1, 0)) + 1
-        coarse = np.multiply.outer(lo + q * h * np.arange(-(-n // q)), self.w)
-        fine = np.multiply.outer(h * np.arange(q), self.w)
-        cf, sf = np.cos(fine), np.sin(fine)
-        cb = (cf * self.b + sf * self.a).T  # (10, q)
-        sb = (cf * self.a - sf * self.b).T
-        e = np.cos(coarse) @ cb + np.sin(coarse) @ sb  # (coarse, q): position j q + p
-        return y, y + e.ravel()[:n]
+        return y, _on_grid(y, float(lo), h, math.isqrt(max(n - 1, 0)) + 1, self.a, self.b, self.w)
 
     def slope(self, y: np.ndarray) -> np.ndarray:
         """d reading / d y* at ``y`` (m,), dimensionless."""
@@ -150,6 +143,31 @@ def _sinusoids(y, a, b, w, slope):
         if slope:
             grad[i] = 1.0 + g
     return value, grad
+
+
+@njit(cache=True)
+def _on_grid(y, lo, h, q, a, b, w):
+    """:meth:`SensorMap.on_grid`'s readings at ``y`` (n,), ``y[j q + p] = lo + (j q + p) h``."""
+    n = y.size
+    nc = -(-n // q)
+    cc = np.empty((nc, w.size))  # cos and sin of the coarse angles w (lo + j q h)
+    sc = np.empty((nc, w.size))
+    for j in range(nc):
+        for k in range(w.size):
+            t = w[k] * (lo + q * h * j)
+            cc[j, k] = math.cos(t)
+            sc[j, k] = math.sin(t)
+    fb = np.empty((w.size, q))  # b cos f + a sin f and a cos f - b sin f, f = w p h
+    fa = np.empty((w.size, q))
+    for k in range(w.size):
+        for p in range(q):
+            t = w[k] * (h * p)
+            cf = math.cos(t)
+            sf = math.sin(t)
+            fb[k, p] = b[k] * cf + a[k] * sf
+            fa[k, p] = a[k] * cf - b[k] * sf
+    e = (cc @ fb + sc @ fa).ravel()  # position j q + p at j, p
+    return y + e[:n]
 
 
 @njit(cache=True)
