@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from cascal import simulation
+from cascal.errors import InputError
 from cascal.simulation import (
     COEF_VARIANCE,
     FREQ_VARIANCE,
@@ -13,6 +14,7 @@ from cascal.simulation import (
     SensorMap,
     cost_j,
     draw_map,
+    j_reference,
     reference_positions,
     simulate_trial,
 )
@@ -93,6 +95,21 @@ def test_slope_is_derivative(trial):
     y = np.linspace(0.0, 1.0, 51)
     h = 1e-6
     assert_allclose(m.slope(y), (m(y + h) - m(y - h)) / (2 * h), rtol=1e-8)
+
+
+def test_map_terms_of_different_lengths_are_refused():
+    with pytest.raises(InputError, match=r"a, b and w of one shape .*\(3,\), \(2,\)"):
+        SensorMap(np.zeros(3), np.zeros(2), np.ones(3))
+    with pytest.raises(InputError, match="one shape"):
+        SensorMap(np.zeros((2, 2)), np.zeros((2, 2)), np.ones((2, 2)))
+
+
+def test_the_trials_j_nodes_are_read_only(trial):
+    grid, truth = j_reference(trial)
+    assert not grid.flags.writeable and not truth.flags.writeable
+    fields = ("testbed_map", "device_map", "d2", "d1", "redraws")
+    fresh = j_reference(type(trial)(*(getattr(trial, f) for f in fields)))  # (computed)
+    assert np.array_equal(fresh[0], grid) and np.array_equal(fresh[1], truth)
 
 
 def test_map_formula():

@@ -51,8 +51,12 @@ class SensorMap:
     w: np.ndarray
 
     def __post_init__(self) -> None:
-        for name in ("a", "b", "w"):  # (contiguous float64, as the compiled sums take them)
-            object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name), float))
+        terms = [np.ascontiguousarray(getattr(self, name), float) for name in ("a", "b", "w")]
+        if not (terms[0].ndim == 1 and terms[0].shape == terms[1].shape == terms[2].shape):
+            shapes = ", ".join(str(t.shape) for t in terms)
+            raise InputError(f"sensor map: expected a, b and w of one shape (k,), got {shapes}")
+        for name, value in zip(("a", "b", "w"), terms, strict=True):  # (as the compiled sums
+            object.__setattr__(self, name, value)  # take them: contiguous float64)
 
     def __call__(self, y: np.ndarray) -> np.ndarray:
         """Noise-free reading at true positions ``y`` (m,), m."""
@@ -253,6 +257,8 @@ def simulate_trial(rng: np.random.Generator, *, n1: int = 100) -> Trial:
     ends = device(np.array([0.0, 1.0]))
     grid = np.linspace(ends[0], ends[1], n1)
     truth, readings = device.on_grid(J_GRID)  # J's nodes, and the inversion's table
+    truth.setflags(write=False)  # (the trial keeps them: j_reference returns them)
+    readings.setflags(write=False)
     ys1 = device.inverse(grid, table=(truth, readings))
     y1 = grid + rng.normal(0.0, sd, n1)
     y2_1 = testbed(ys1) + rng.normal(0.0, sd, n1)
