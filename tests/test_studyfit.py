@@ -45,6 +45,7 @@ def test_the_kernels_exp_is_within_one_ulp_of_libm():
     assert np.all(np.abs(ours - exact) <= np.array([math.ulp(v) for v in exact]))
     assert np.mean(ours == exact) > 0.9  # mostly correctly rounded
     assert np.array_equal(_exps(np.array([-708.5, -800.0, -1e300, -np.inf])), np.zeros(4))
+    assert np.isnan(_exps(np.array([np.nan]))[0])
 
 
 @given(st.floats(-708.0, 0.0))
