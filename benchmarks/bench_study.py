@@ -1,7 +1,7 @@
 """The paper's Monte Carlo study, timed: wall time, trials per second, split per method.
 
 The study fits its stages with the compiled search of ``cascal.studyfit`` (Numba; the
-first run compiles it, about 40 s, and later runs load the cache: this benchmark runs
+first run compiles it, about 55 s, and later runs load the cache: this benchmark runs
 one trial first so that the timing is the cached code's). Then two quality checks on
 further trials, on the study's own fits (``cascal.montecarlo``'s, exactly as a trial
 makes them):

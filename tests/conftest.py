@@ -28,7 +28,7 @@ def rng():
 @pytest.fixture(scope="session", autouse=True)
 def _compiled_study():
     """The study's compiled fits, compiled once before any test (Numba caches them, about
-    40 s the first time): the study's worker processes in the tests load them instead of
+    55 s the first time): the study's worker processes in the tests load them instead of
     compiling them each, inside the tests' waits."""
     from cascal.montecarlo import StudyConfig, run_trial
 
