@@ -314,15 +314,20 @@ def _pivots_value(t, e2, z):
 @njit(cache=True)
 def _value(kind, t, e2, c0, c1, e, nx, n, u):
     """A row's value alone (:func:`_profiled_row` or :func:`_dense_row`)."""
+    z = math.exp(u) if kind == 0 else math.exp(-u)
+    p0, ld = _pivots_value(t, e2, z)
+    return _value_from(kind, p0, ld, z, u, c0, c1, e, nx, n)
+
+
+@njit(cache=True)
+def _value_from(kind, p0, ld, z, u, c0, c1, e, nx, n):
+    """:func:`_value` from the first pivot ``p0`` and ``log det`` of ``T + z I`` (``z``
+    the noise ratio ``e^u``, kind 0, or ``e^-u``, kind 1)."""
     if kind == 0:
-        g = math.exp(u)
-        p0, ld = _pivots_value(t, e2, g)
-        q = (c0 + c1 / p0) / g**e
+        q = (c0 + c1 / p0) / z**e
         if not q > 0.0:
             return -np.inf
         return -0.5 * n * math.log(q / n) - 0.5 * (ld + nx * u) - 0.5 * n * (1.0 + _LOG2PI)
-    z = math.exp(-u)
-    p0, ld = _pivots_value(t, e2, z)
     quad = c0 - c1 / p0
     if not quad > 0.0:
         return -np.inf
@@ -400,22 +405,9 @@ def _scan(kind, t, e2, c0, c1, e, nx, n, lo, h):
                 ld[j] += math.log(prod[j])
                 prod[j] = 1.0
     out = np.empty(_SCAN)
-    for j in range(_SCAN):  # :func:`_value`'s
+    for j in range(_SCAN):
         ldj = ld[j] + math.log(prod[j])
-        if kind == 0:
-            q = (c0 + c1 / pv[j]) / z[j] ** e
-            if not q > 0.0:
-                out[j] = -np.inf
-            else:
-                out[j] = (
-                    -0.5 * n * math.log(q / n) - 0.5 * (ldj + nx * u[j]) - 0.5 * n * (1.0 + _LOG2PI)
-                )
-        else:
-            quad = c0 - c1 / pv[j]
-            if not quad > 0.0:
-                out[j] = -np.inf
-            else:
-                out[j] = -0.5 * quad - 0.5 * (e + ldj + nx * u[j]) - 0.5 * n * _LOG2PI
+        out[j] = _value_from(kind, pv[j], ldj, z[j], u[j], c0, c1, e, nx, n)
     return out
 
 
