@@ -735,3 +735,52 @@ def test_progress_says_eta_unknown_before_a_trial_is_done():
     p(0, 200)
     p(0, 200)
     assert stream.getvalue().strip().endswith("ETA unknown (none done yet)")
+
+
+def test_compiled_reads_numbas_cache_of_the_study_code(tmp_path):
+    """True once a trial has run here (its code cached beside the package); False for an
+    empty cache folder, where a process would compile it first."""
+    from cascal.montecarlo import compiled
+
+    run_trial(CONFIG, 0)
+    assert compiled(CONFIG)
+    cold = subprocess.run(
+        [sys.executable, "-c", "from cascal.montecarlo import *; print(compiled(StudyConfig()))"],
+        env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)},
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert cold.stdout.strip() == "False"
+
+
+def test_a_cold_cache_is_compiled_once_before_the_trials_and_said(tmp_path, monkeypatch):
+    """Where Numba's cache lacks the study's code, the study compiles it in this process
+    before its workers start (they then load it instead of each compiling it), says so
+    first and reports the seconds apart from the trials; the numbers are the same."""
+    import cascal.study
+
+    lines: list[str] = []
+    monkeypatch.setattr(cascal.study, "compiled", lambda config: True)
+    warm = run_study(tmp_path / "warm", trials=3, config=CONFIG, workers=1, notice=lines.append)
+    assert warm.compile_s == 0.0 and lines == []
+    monkeypatch.setattr(cascal.study, "compiled", lambda config: False)
+    cold = run_study(tmp_path / "cold", trials=3, config=CONFIG, workers=1, notice=lines.append)
+    assert cold.compile_s > 0.0 and len(lines) == 1 and "Compiling the study's code" in lines[0]
+    assert _costs(cold) == _costs(warm) and cold.ran == 3
+    lines.clear()
+    again = run_study(tmp_path / "cold", trials=3, config=CONFIG, workers=1, notice=lines.append)
+    assert again.ran == 0 and again.compile_s == 0.0 and lines == []  # nothing pending
+
+
+def test_the_command_reports_compiling_apart_from_the_study(tmp_path, monkeypatch, capsys):
+    import cascal.study
+    from cascal.cli import main
+
+    monkeypatch.setattr(cascal.study, "compiled", lambda config: False)
+    out = tmp_path / "study"
+    assert main(["study", "--trials", "2", "--workers", "1", "--seed", "7", "--out", str(out)]) == 0
+    got = capsys.readouterr()
+    assert "Compiling the study's code for this machine" in got.err
+    assert re.search(r"Before it, compiling the study's code took \d+\.\d s", got.out)
+    assert "Study of 2 trials" in got.out

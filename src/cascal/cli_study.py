@@ -47,8 +47,8 @@ class Progress:
                 self.close()
             return
         now = time.perf_counter()
-        if self.last < -1e8:
-            self.start_done, self.last = done, now
+        if self.last < -1e8:  # (the rate counts from here: not the set-up before)
+            self.start_done, self.last, self.t0 = done, now, now
             return
         if done < total and now - self.last < self.every_s:
             return
@@ -87,14 +87,20 @@ def _cmd_study(args: argparse.Namespace) -> int:
             workers=args.workers,
             scheduler=args.scheduler,
             progress=progress,
+            notice=lambda line: print(f"{line}...", file=sys.stderr, flush=True),
         )
     except KeyboardInterrupt as exc:  # Ctrl-C, SIGTERM: what was stored stays
         raise type(exc)(f"the trials stored in {args.out} stay: the same command resumes") from None
     finally:
         progress.close()
-    wall = time.perf_counter() - t0
+    wall = time.perf_counter() - t0 - outcome.compile_s
     s = outcome.summary
     print(f"Study of {s['n_trials']} trials in {args.out}/ ({outcome.ran} run now, {wall:.1f} s).")
+    if outcome.compile_s:
+        print(
+            f"Before it, compiling the study's code took {outcome.compile_s:.1f} s "
+            "(once: later runs load it from Numba's cache)."
+        )
     if outcome.stored > s["n_trials"]:
         print(
             f"The folder holds {outcome.stored} trials; its outputs now cover the first "

@@ -22,7 +22,15 @@ from .gp import FittedGP, single_threaded_blas
 from .simulation import Trial, cost_j, j_reference, simulate_trial
 from .tabulate import chebyshev_mean
 
-__all__ = ["StudyConfig", "TrialResult", "run_chunk", "run_trial", "summarize", "trial_rng"]
+__all__ = [
+    "StudyConfig",
+    "TrialResult",
+    "compiled",
+    "run_chunk",
+    "run_trial",
+    "summarize",
+    "trial_rng",
+]
 
 QUANTILES = (0.10, 0.25, 0.50, 0.75, 0.90)
 
@@ -217,6 +225,34 @@ def _table(x: np.ndarray, y: np.ndarray, stage: str):
 
 def _names(stage: str) -> tuple[str, str]:
     return (f"{stage} x", f"{stage} y")
+
+
+def compiled(config: StudyConfig) -> bool:
+    """Whether Numba's cache holds this machine's compiled code of the study's trials as
+    ``config`` runs them (the simulator; the fits for the squared exponential) for the
+    sources installed. Without it a process compiles that code at its first trial (about
+    55 s, then cached). False where the cache cannot be read."""
+    from . import simulation
+
+    functions = [simulation._on_grid, simulation._newton]
+    if config.kernel == "se" and any(m != "lut" for m in config.methods):
+        from . import studyfit
+
+        functions += [studyfit._search_profile, studyfit._search_dense, studyfit._factorise]
+    try:  # (Numba's index of a function's cache: keyed by signature, machine, bytecode)
+        from numba.core.registry import cpu_target
+
+        codegen = cpu_target.target_context.codegen()
+        magic = codegen.magic_tuple()
+        return all(
+            any(
+                key[1] == magic and key[2] == f._cache._index_key(key[0], codegen)[2]
+                for key in f._cache._cache_file._load_index()
+            )
+            for f in functions
+        )
+    except Exception:  # (another Numba's internals: then compile first, as if not cached)
+        return False
 
 
 def run_chunk(config: StudyConfig, indices: list[int]) -> list[TrialResult]:

@@ -33,7 +33,7 @@ from .errors import CascalWarning, InputError, WorkerError
 from .gp import pin_blas
 from .io.atomic import save_figure, together, write_text
 from .io.studydb import StudyDB
-from .montecarlo import StudyConfig, TrialResult, run_chunk, run_trial, summarize
+from .montecarlo import StudyConfig, TrialResult, compiled, run_chunk, run_trial, summarize
 from .pool import (
     MAX_WORKERS,
     completed,
@@ -49,6 +49,7 @@ from .pool import (
 __all__ = ["StudyOutcome", "run_study", "trials_table"]
 
 Progress = Callable[[int, int], None]
+Notice = Callable[[str], None]
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,6 +64,8 @@ class StudyOutcome:
         stored: Trials in the folder's database, those beyond ``trials`` included.
         span: The ``trials`` whose study covers every stored one (the highest stored
             index plus one: an interrupted run can leave gaps).
+        compile_s: Seconds spent compiling the study's code in this process before the
+            trials (0 where Numba's cache held it).
     """
 
     folder: Path
@@ -71,6 +74,7 @@ class StudyOutcome:
     ran: int
     stored: int = 0
     span: int = 0
+    compile_s: float = 0.0
 
 
 def run_study(
@@ -83,6 +87,7 @@ def run_study(
     executor: Executor | None = None,
     chunk: int | None = None,
     progress: Progress | None = None,
+    notice: Notice | None = None,
 ) -> StudyOutcome:
     """Run (or resume) the study in folder ``out`` and write its outputs there.
 
@@ -99,6 +104,10 @@ def run_study(
         executor: Any executor to run on instead (takes precedence).
         chunk: Trials per task (default: about 8 tasks per worker, at most 50 trials).
         progress: Called as ``progress(done, total)`` after every finished task.
+        notice: Called with a line of text before long one-off work: compiling the
+            study's code where Numba's cache lacks it (about 55 s on a first run). Local
+            runs compile it here, once, before the workers start (they load it from the
+            cache); the workers of a cluster compile it on their machines.
 
     Ctrl-C stops the workers and raises KeyboardInterrupt (the trials stored stay). So
     does SIGTERM where a handler of :mod:`cascal.pool` raises
@@ -113,9 +122,9 @@ def run_study(
     if scheduler is not None and executor is None:
         with _quiet_dask_client():
             return _run_study(
-                out, trials, config, workers, _connect(scheduler), None, chunk, progress
+                out, trials, config, workers, _connect(scheduler), None, chunk, progress, notice
             )
-    return _run_study(out, trials, config, workers, None, executor, chunk, progress)
+    return _run_study(out, trials, config, workers, None, executor, chunk, progress, notice)
 
 
 def _run_study(
@@ -127,6 +136,7 @@ def _run_study(
     executor: Executor | None,
     chunk: int | None,
     progress: Progress | None,
+    notice: Notice | None,
 ) -> StudyOutcome:
     """:func:`run_study` on ``client`` (a Dask client it closes), on ``executor``, or on
     local workers."""
@@ -146,6 +156,9 @@ def _run_study(
         before = db.results()  # every stored record checked before any work (a review: a
         # damaged one had been found after the pending trials were computed)
         pending = sorted(set(range(trials)) - {r.index for r in before})
+        compile_s = 0.0
+        if pending and client is None and executor is None:
+            compile_s = _compile_here(config, pending[0], notice)
         if pending:
             _check_same_numbers(config, before[0] if before else None, folder)
         n_workers = workers or default_workers()
@@ -186,7 +199,23 @@ def _run_study(
         if client is not None:
             client.close()
     span = max((r.index for r in stored), default=-1) + 1
-    return StudyOutcome(folder, results, summary, len(pending), len(stored), span)
+    return StudyOutcome(folder, results, summary, len(pending), len(stored), span, compile_s)
+
+
+def _compile_here(config: StudyConfig, index: int, notice: Notice | None) -> float:
+    """Compile the study's code in this process by running trial ``index`` where Numba's
+    cache lacks it, so that local workers load it instead of each compiling it; the
+    seconds that took (0 where it was cached)."""
+    if compiled(config):
+        return 0.0
+    if notice:
+        notice(
+            "Compiling the study's code for this machine (the first run after installing: "
+            "about a minute; it is cached for later runs)"
+        )
+    t0 = time.perf_counter()
+    run_trial(config, index)  # (its result is computed again with the others)
+    return time.perf_counter() - t0
 
 
 #: Pending trials from which the outputs' modules are imported during the run.
