@@ -764,7 +764,8 @@ def test_a_cold_cache_is_compiled_once_before_the_trials_and_said(tmp_path, monk
     monkeypatch.setattr(cascal.study, "compiled", lambda config: True)
     warm = run_study(tmp_path / "warm", trials=3, config=CONFIG, workers=1, notice=lines.append)
     assert warm.compile_s == 0.0 and lines == []
-    monkeypatch.setattr(cascal.study, "compiled", lambda config: False)
+    checks = iter([False, True])  # cold, then cached by the compiling
+    monkeypatch.setattr(cascal.study, "compiled", lambda config: next(checks))
     cold = run_study(tmp_path / "cold", trials=3, config=CONFIG, workers=1, notice=lines.append)
     assert cold.compile_s > 0.0 and len(lines) == 1 and "Compiling the study's code" in lines[0]
     assert _costs(cold) == _costs(warm) and cold.ran == 3
@@ -773,11 +774,21 @@ def test_a_cold_cache_is_compiled_once_before_the_trials_and_said(tmp_path, monk
     assert again.ran == 0 and again.compile_s == 0.0 and lines == []  # nothing pending
 
 
+def test_a_cache_that_keeps_nothing_is_warned_of(tmp_path, monkeypatch):
+    import cascal.study
+    from cascal.errors import CascalWarning
+
+    monkeypatch.setattr(cascal.study, "compiled", lambda config: False)
+    with pytest.warns(CascalWarning, match="each worker compiles it again"):
+        run_study(tmp_path, trials=1, config=CONFIG, workers=1)
+
+
 def test_the_command_reports_compiling_apart_from_the_study(tmp_path, monkeypatch, capsys):
     import cascal.study
     from cascal.cli import main
 
-    monkeypatch.setattr(cascal.study, "compiled", lambda config: False)
+    checks = iter([False, True])
+    monkeypatch.setattr(cascal.study, "compiled", lambda config: next(checks))
     out = tmp_path / "study"
     assert main(["study", "--trials", "2", "--workers", "1", "--seed", "7", "--out", str(out)]) == 0
     got = capsys.readouterr()

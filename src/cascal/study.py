@@ -215,7 +215,16 @@ def _compile_here(config: StudyConfig, index: int, notice: Notice | None) -> flo
         )
     t0 = time.perf_counter()
     run_trial(config, index)  # (its result is computed again with the others)
-    return time.perf_counter() - t0
+    seconds = time.perf_counter() - t0
+    if not compiled(config):
+        warnings.warn(
+            "Numba's cache does not hold the study's code after compiling it (its folder, "
+            "__pycache__ beside cascal or NUMBA_CACHE_DIR, is not kept?): each worker "
+            "compiles it again, on every run; set NUMBA_CACHE_DIR to a writable folder",
+            CascalWarning,
+            stacklevel=4,
+        )
+    return seconds
 
 
 #: Pending trials from which the outputs' modules are imported during the run.
