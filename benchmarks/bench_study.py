@@ -26,7 +26,7 @@ from blas import describe as blas
 from cascal.cascade import Cascade
 from cascal.gp import Objective, single_threaded_blas
 from cascal.kernels import SquaredExp
-from cascal.montecarlo import StudyConfig, _Fitter, compiled, run_trial, trial_rng
+from cascal.montecarlo import StudyConfig, compiled, run_trial, stage_fits, trial_rng
 from cascal.optimize import maximize
 from cascal.simulation import simulate_trial
 from cascal.study import run_study
@@ -48,13 +48,19 @@ def quality(config: StudyConfig, sample: int) -> tuple[np.ndarray, np.ndarray]:
     for i in range(sample):
         rng = trial_rng(config.seed, 10_000_000 + i)
         trial = simulate_trial(rng)
-        fitter = _Fitter(trial, config, int(rng.integers(2**63)))
-        fitter.stage0()
-        ours = [fitter.gp0] + [fitter.stage1(m)[0] for m in ("bayes", "homoscedastic")]
-        chain = fitter.chain
+        seed = int(rng.integers(2**63))
+        gp0, stage_b = stage_fits(config, trial, seed)
+        ours = [gp0] + [stage_b[m] for m in ("bayes", "homoscedastic")]
+        chain = Cascade(
+            [trial.d2, trial.d1],
+            "bayes",
+            kernel=config.kernel,
+            n_restarts=config.n_restarts,
+            seed=seed,
+        )
         first = Cascade(chain.stages[:1], "bayes", n_restarts=config.n_restarts, seed=i).fit()
         theirs = [first.models[0]] + [
-            chain.with_method(m).fit(first=fitter.gp0).models[1] for m in ("bayes", "homoscedastic")
+            chain.with_method(m).fit(first=gp0).models[1] for m in ("bayes", "homoscedastic")
         ]
         ref_rng = np.random.default_rng(i)
         for gp, lib in zip(ours, theirs, strict=True):

@@ -795,3 +795,18 @@ def test_the_command_reports_compiling_apart_from_the_study(tmp_path, monkeypatc
     assert "Compiling the study's code for this machine" in got.err
     assert re.search(r"Before it, compiling the study's code took \d+\.\d s", got.out)
     assert "Study of 2 trials" in got.out
+
+
+def test_stage_fits_are_the_fits_a_trial_records():
+    from cascal.montecarlo import stage_fits
+    from cascal.simulation import simulate_trial
+
+    rng = trial_rng(CONFIG.seed, 4)
+    trial = simulate_trial(rng)
+    gp0, stage_b = stage_fits(CONFIG, trial, int(rng.integers(2**63)))
+    fits = run_trial(CONFIG, 4).fits
+    assert sorted(stage_b) == ["bayes", "homoscedastic"]
+    pairs = [(gp0, "stage0")] + [(stage_b[m], f"{m}/stage1") for m in stage_b]
+    for gp, key in pairs:
+        assert gp.log_marginal_likelihood == fits[key]["log_marginal_likelihood"]
+        assert all(float(v) == fits[key][k] for k, v in gp.hyperparameters.items())

@@ -28,6 +28,7 @@ __all__ = [
     "compiled",
     "run_chunk",
     "run_trial",
+    "stage_fits",
     "summarize",
     "trial_rng",
 ]
@@ -101,6 +102,18 @@ def run_trial(config: StudyConfig, index: int) -> TrialResult:
             return _run_trial(config, index)
         except CascalError as exc:
             raise type(exc)(f"trial {index} (seed {config.seed}): {exc}") from exc
+
+
+def stage_fits(
+    config: StudyConfig, trial: Trial, seed: int
+) -> tuple[FittedGP, dict[str, FittedGP]]:
+    """The GP stages of ``trial`` as a study trial fits them, ``seed`` being the trial's
+    fit seed: stage A's GP and, per GP method of ``config``, stage B's GP (for checks of
+    the study's fits against other optimisers)."""
+    fitter = _Fitter(trial, config, seed)
+    fitter.stage0()
+    methods = sorted((m for m in config.methods if m != "lut"), key=lambda m: m != "homoscedastic")
+    return fitter.gp0, {m: fitter.stage1(m)[0] for m in methods}
 
 
 def _run_trial(config: StudyConfig, index: int) -> TrialResult:
