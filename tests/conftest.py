@@ -28,8 +28,8 @@ def rng():
 @pytest.fixture(scope="session", autouse=True)
 def _compiled_study():
     """The study's compiled fits, compiled once before any test (Numba caches them, about
-    55 s the first time): the study's worker processes in the tests load them instead of
-    compiling them each, inside the tests' waits."""
+    55 s the first time): a study that a test runs in a subprocess, waiting a few seconds
+    for its trials or its signals, then loads them instead of compiling them first."""
     from cascal.montecarlo import StudyConfig, run_trial
 
     run_trial(StudyConfig(), 0)

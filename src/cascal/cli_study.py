@@ -30,7 +30,7 @@ class Progress:
         # on a terminal of no width, as a pseudo-terminal whose size was never set)
         self.bar = None
         self.every_s = every_s
-        self.t0 = time.perf_counter()
+        self.t0 = 0.0  # (the first call's time)
         self.last = -1e9
         self.start_done = 0
 

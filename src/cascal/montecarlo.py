@@ -111,9 +111,8 @@ def stage_fits(
     fit seed: stage A's GP and, per GP method of ``config``, stage B's GP (for checks of
     the study's fits against other optimisers)."""
     fitter = _Fitter(trial, config, seed)
-    fitter.stage0()
-    methods = sorted((m for m in config.methods if m != "lut"), key=lambda m: m != "homoscedastic")
-    return fitter.gp0, {m: fitter.stage1(m)[0] for m in methods}
+    fitter.stage0()  # (stage B's fits share one search: their order does not matter)
+    return fitter.gp0, {m: fitter.stage1(m)[0] for m in config.methods if m != "lut"}
 
 
 def _run_trial(config: StudyConfig, index: int) -> TrialResult:
